@@ -1,0 +1,261 @@
+"""What a bundle is: the manifest model, the completeness check, and safe paths inside it.
+
+A bundle is one directory ``inbox/<bundle_id>/`` holding ``bundle.yaml`` and the map files it
+names (contract section 2).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from mapserver.errors import BundleError, BundleIncomplete
+from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
+
+MANIFEST = "bundle.yaml"
+BUNDLE_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+
+
+def is_valid_bundle_id(name: str) -> bool:
+    return BUNDLE_ID_RE.fullmatch(name) is not None
+
+
+def is_in_flight(name: str) -> bool:
+    """Names of files still being uploaded (rsync temp names, editor backups): never read."""
+    return name.startswith(".") or name.endswith((".tmp", ".part", "~"))
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Quaternion(_Model):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class PoseModel(_Model):
+    """A pose with ``yaw`` or a ROS ``orientation`` quaternion (exactly one of them)."""
+
+    x: float
+    y: float
+    yaw: float | None = None
+    orientation: Quaternion | None = None
+
+    @model_validator(mode="after")
+    def _one_heading(self) -> PoseModel:
+        if (self.yaw is None) == (self.orientation is None):
+            raise ValueError("give exactly one of 'yaw' and 'orientation'")
+        values = [self.x, self.y, self.yaw if self.yaw is not None else 0.0]
+        if self.orientation is not None:
+            o = self.orientation
+            values += [o.x, o.y, o.z, o.w]
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("pose values must be finite numbers (no NaN or inf)")
+        return self
+
+    def to_pose(self) -> Pose2D:
+        if self.orientation is not None:
+            o = self.orientation
+            try:
+                yaw = yaw_from_quaternion(o.x, o.y, o.z, o.w)
+            except ValueError as error:
+                raise BundleError(str(error), file=MANIFEST) from None
+        else:
+            assert self.yaw is not None
+            yaw = self.yaw
+        return Pose2D(self.x, self.y, yaw)
+
+
+class PosePair(_Model):
+    nav2: PoseModel
+    slam: PoseModel
+
+
+FileName = Annotated[str, StringConstraints(min_length=1)]
+
+
+class Manifest(_Model):
+    """``bundle.yaml`` (contract section 2)."""
+
+    format: int = Field(1)
+    robot: Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9._-]+$")]
+    stamp: str
+    slam_map: FileName
+    nav2_map: FileName | None = None
+    pose: PosePair
+    trajectory: list[PoseModel] | None = None
+    checksums: dict[str, Annotated[str, StringConstraints(pattern=r"^[0-9a-fA-F]{64}$")]] | None = (
+        None
+    )
+
+    @field_validator("format")
+    @classmethod
+    def _format_one(cls, value: int) -> int:
+        if value != 1:
+            raise ValueError(f"unsupported format {value}; this server reads format 1")
+        return value
+
+    @field_validator("stamp", mode="before")
+    @classmethod
+    def _stamp_text(cls, value: object) -> object:
+        # YAML turns an unquoted ISO time into a datetime; keep the text form.
+        if hasattr(value, "isoformat"):
+            return value.isoformat().replace("+00:00", "Z")  # type: ignore[union-attr]
+        return value
+
+    def nav2_from_slam_prior(self) -> Transform2D:
+        """The transform slam -> nav2 given by the pose pair (contract section 1)."""
+        return Transform2D.from_poses(self.pose.nav2.to_pose(), self.pose.slam.to_pose())
+
+    def trajectory_poses(self) -> list[Pose2D]:
+        return [p.to_pose() for p in self.trajectory or []]
+
+
+def _describe(error: ValidationError) -> str:
+    parts = []
+    for item in error.errors():
+        key = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        if item["type"] == "extra_forbidden":
+            parts.append(f"unknown key '{key}'")
+        elif item["type"] == "missing":
+            parts.append(f"missing key '{key}'")
+        else:
+            parts.append(f"'{key}': {item['msg']}")
+    return "; ".join(parts)
+
+
+def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
+    """Parse and validate the text of ``bundle.yaml``; errors name the field."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        problem = " ".join(str(error).split())
+        raise BundleError(f"not valid YAML: {problem}", file=source) from None
+    if not isinstance(data, dict):
+        raise BundleError("the manifest must be a mapping of keys to values", file=source)
+    try:
+        return Manifest.model_validate(data)
+    except ValidationError as error:
+        raise BundleError(_describe(error), file=source) from None
+
+
+def read_manifest(bundle_dir: Path) -> Manifest:
+    path = bundle_dir / MANIFEST
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise BundleIncomplete("no bundle.yaml yet", file=path) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise BundleError(f"cannot read the manifest: {error}", file=path) from None
+    return parse_manifest(text, source=path)
+
+
+def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path:
+    """The path of file ``name`` inside ``bundle_dir``; a name that leaves the bundle (absolute,
+    ``..``, or a symlink pointing outside) is a :class:`BundleError`."""
+    if not name or Path(name).is_absolute():
+        raise BundleError(f"{what} '{name}' must be a relative path inside the bundle", file=source)
+    root = bundle_dir.resolve()
+    candidate = bundle_dir / name
+    resolved = candidate.resolve()
+    if resolved != root and root not in resolved.parents:
+        raise BundleError(f"{what} '{name}' points outside the bundle", file=source)
+    return candidate
+
+
+def map_image_name(map_yaml: Path) -> str:
+    """The ``image:`` entry of a map YAML, read without loading the image (for completeness)."""
+    try:
+        data = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise BundleIncomplete("missing", file=map_yaml) from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        problem = " ".join(str(error).split())
+        raise BundleError(f"not a readable map YAML: {problem}", file=map_yaml) from None
+    if not isinstance(data, dict) or not isinstance(data.get("image"), str):
+        raise BundleError("map YAML has no 'image:' entry", file=map_yaml)
+    return str(data["image"])
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class BundleFiles:
+    """The files of a complete bundle: the manifest and every file it depends on."""
+
+    manifest: Manifest
+    slam_yaml: Path
+    slam_image: Path
+    nav2_yaml: Path | None
+    nav2_image: Path | None
+
+    def paths(self) -> list[Path]:
+        out = [self.slam_yaml, self.slam_image]
+        out += [p for p in (self.nav2_yaml, self.nav2_image) if p is not None]
+        return out
+
+
+def check_bundle_files(bundle_dir: Path) -> BundleFiles:
+    """Check that the manifest parses, every file it names is present and every listed checksum
+    matches.
+
+    Raises :class:`BundleIncomplete` while a file is missing or a checksum does not match (the
+    upload may still be going on) and :class:`BundleError` for a bundle that can never be right.
+    The settle time (nothing changed for a while) is the caller's business.
+    """
+    manifest = read_manifest(bundle_dir)
+    source = bundle_dir / MANIFEST
+    files: dict[str, Path] = {}
+    yamls: dict[str, Path | None] = {"slam": None, "nav2": None}
+    images: dict[str, Path | None] = {"slam": None, "nav2": None}
+    for key, name in (("slam", manifest.slam_map), ("nav2", manifest.nav2_map)):
+        if name is None:
+            continue
+        yaml_path = safe_member(bundle_dir, name, what=f"{key}_map", source=source)
+        if not yaml_path.is_file():
+            raise BundleIncomplete(f"{key}_map '{name}' is not there yet", file=source)
+        image_name = map_image_name(yaml_path)
+        image_rel = (
+            str(Path(name).parent / image_name)
+            if not Path(image_name).is_absolute()
+            else image_name
+        )
+        image_path = safe_member(bundle_dir, image_rel, what="map image", source=yaml_path)
+        if not image_path.is_file():
+            raise BundleIncomplete(f"map image '{image_name}' is not there yet", file=yaml_path)
+        yamls[key], images[key] = yaml_path, image_path
+        files[name] = yaml_path
+        files[image_rel] = image_path
+    for name, expected in (manifest.checksums or {}).items():
+        path = safe_member(bundle_dir, name, what="checksummed file", source=source)
+        if not path.is_file():
+            raise BundleIncomplete(f"checksummed file '{name}' is not there yet", file=source)
+        if sha256_file(path) != expected.lower():
+            raise BundleIncomplete(f"sha256 of '{name}' does not match the manifest", file=path)
+    slam_yaml, slam_image = yamls["slam"], images["slam"]
+    assert slam_yaml is not None and slam_image is not None
+    return BundleFiles(manifest, slam_yaml, slam_image, yamls["nav2"], images["nav2"])

@@ -1,0 +1,163 @@
+"""The configuration: pydantic models, every key defaulted, unknown keys an error.
+
+This module is the only reader of configuration YAML. The top-level keys of contract section 6
+(``inbox`` ... ``max_image_pixels``) are fixed; ``pipeline`` holds the tuning of the image stages.
+Relative paths are resolved against the configuration file's directory (or the current directory
+for built-in defaults).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from mapserver.errors import ConfigError
+
+ENV_VAR = "MAPSERVER_CONFIG"
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class AlignConfig(_Frozen):
+    """Alignment of the local map onto the global map."""
+
+    refine: bool = True
+    """Refine the pose prior by matching the maps; false keeps the prior as it is."""
+    search_xy_m: float = Field(2.5, gt=0)
+    """Half-width of the translation search window around the prior."""
+    search_theta_deg: float = Field(35.0, gt=0, le=180)
+    """Half-width of the rotation search window around the prior."""
+    min_score: float = Field(0.45, ge=0, le=1)
+    """Below this agreement the alignment is not trusted: a warning, and no differences reported."""
+    min_gain: float = Field(0.02, ge=0)
+    """The refinement replaces the prior only when it scores at least this much better."""
+    deform: bool = True
+    """Correct SLAM drift with small per-tile shifts after the rigid alignment."""
+    deform_tile_m: float = Field(6.0, gt=0)
+    deform_max_shift_m: float = Field(0.4, ge=0)
+
+
+class RoiConfig(_Frozen):
+    """The region of interest in which differences are looked for."""
+
+    strategy: Literal["observed", "box", "trajectory", "heading"] = "observed"
+    box_size_m: float = Field(10.0, gt=0)
+    """Side of the square for ``box`` (centred on the robot) and ``heading`` (behind it)."""
+    trajectory_radius_m: float = Field(6.0, gt=0)
+    """Corridor half-width around the route for ``trajectory``."""
+
+
+class DiffConfig(_Frozen):
+    """Finding and filtering added and removed obstacles."""
+
+    tolerance_m: float = Field(0.15, ge=0)
+    """A wall seen this close to where the global map has it is not a change (misalignment)."""
+    min_area_m2: float = Field(0.02, ge=0)
+    """Smaller differences are noise."""
+    min_pixels: int = Field(5, ge=1)
+    cluster_eps_m: float = Field(0.3, gt=0)
+    """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
+    cluster_min_samples: int = Field(3, ge=1)
+
+
+class RenderConfig(_Frozen):
+    margin_m: float = Field(2.0, ge=0)
+    """Images cover the ROI plus this margin."""
+    max_side_px: int = Field(2000, ge=100)
+    """Images are scaled down to at most this many pixels on a side."""
+
+
+class PipelineConfig(_Frozen):
+    align: AlignConfig = AlignConfig()
+    roi: RoiConfig = RoiConfig()
+    diff: DiffConfig = DiffConfig()
+    render: RenderConfig = RenderConfig()
+
+
+class Config(_Frozen):
+    """The whole configuration. The first keys are contract section 6."""
+
+    inbox: Path = Path("./inbox")
+    outbox: Path = Path("./outbox")
+    archive: Path = Path("./archive")
+    failed: Path = Path("./failed")
+    reference_map: Path | None = None
+    settle_seconds: float = Field(2.0, ge=0)
+    stale_after_seconds: float = Field(600.0, gt=0)
+    rescan_seconds: float = Field(60.0, gt=0)
+    workers: int = Field(0, ge=0)
+    observer: Literal["native", "polling"] = "native"
+    max_image_pixels: int = Field(100_000_000, gt=0)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    pipeline: PipelineConfig = PipelineConfig()
+
+    def resolved(self, base_dir: Path) -> Config:
+        """A copy with every relative path made absolute against ``base_dir``."""
+        updates: dict[str, Path | None] = {}
+        for key in ("inbox", "outbox", "archive", "failed", "reference_map"):
+            value = getattr(self, key)
+            if value is not None:
+                updates[key] = (base_dir / value).resolve() if not value.is_absolute() else value
+        return self.model_copy(update=updates)
+
+    def worker_count(self) -> int:
+        """``workers``, with 0 meaning the number of cores."""
+        return self.workers or (os.cpu_count() or 1)
+
+
+def _describe(error: ValidationError) -> str:
+    parts = []
+    for item in error.errors():
+        key = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        if item["type"] == "extra_forbidden":
+            parts.append(f"unknown key '{key}'")
+        else:
+            parts.append(f"'{key}': {item['msg']}")
+    return "; ".join(parts)
+
+
+def parse_config(data: object, *, base_dir: Path, source: Path | None = None) -> Config:
+    """Validate configuration data (a mapping) and resolve its paths against ``base_dir``."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError("the configuration must be a mapping of keys to values", file=source)
+    try:
+        config = Config.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(_describe(error), file=source) from None
+    return config.resolved(base_dir)
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load the configuration.
+
+    ``path`` if given, else ``$MAPSERVER_CONFIG`` if set, else the built-in defaults with paths
+    relative to the current directory.
+    """
+    if path is None:
+        env = os.environ.get(ENV_VAR)
+        path = Path(env) if env else None
+    if path is None:
+        return Config().resolved(Path.cwd())
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ConfigError(f"cannot read the configuration: {error.strerror}", file=path) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"not valid YAML: {error}", file=path) from None
+    return parse_config(data, base_dir=path.resolve().parent, source=path)
+
+
+def dump_config(config: Config) -> str:
+    """The effective settings as YAML (what ``check-config`` prints)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
