@@ -1,0 +1,453 @@
+"""Alignment of the local (slam) map onto the global (nav2) map.
+
+Pure functions. The pose prior (one robot pose seen in both frames) gives a first
+``nav2_from_slam``; a correlative search AROUND that prior (rotation and translation, rigid: two
+maps of one building have no scale or shear) followed by an ICP polish refines it. Every candidate
+is scored on the same cells, and the prior is kept unless the refinement clearly wins. A search
+around the prior, rather than a global feature match, is what keeps rows of identical columns
+from locking the map onto the wrong one.
+
+Arrays are indexed ``[row, col]``; points are ``(N, 2)`` arrays of ``(x, y)`` metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mapserver.geometry import Transform2D, wrap_angle
+from mapserver.grid import Grid, resample
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class GlobalView:
+    """The part of the global map the local map can land on, resampled to the work grid.
+
+    ``state`` is the global cell state and ``structure`` the walls used for alignment (occupied
+    cells, plus walls a drawing shows in grey), both (grid.height, grid.width) on ``grid``
+    (nav2 frame).
+    """
+
+    grid: Grid
+    state: NDArray[np.uint8]
+    structure: NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The result of aligning: ``nav2_from_slam`` and how far it can be trusted.
+
+    ``score`` (0..1) is the share of the local map's occupied cells that lie on a wall of the
+    global map; ``prior_score`` is the same for the pose prior. ``trusted`` is false when even the
+    best transform agrees too little to compare the maps.
+    """
+
+    nav2_from_slam: Transform2D
+    prior: Transform2D
+    method: str
+    refined: bool
+    score: float
+    prior_score: float
+    trusted: bool
+    warnings: tuple[str, ...] = field(default=())
+
+
+def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
+    """Walls for alignment: occupied cells, and cells clearly darker than the map's unknown grey.
+
+    Some maps draw walls as grey anti-aliased lines that read as unknown by the trinary rule;
+    they still show where the walls are. Returns a new (H, W) bool array.
+    """
+    occ = m.occupancy
+    unknown_cells = m.state == UNKNOWN
+    if np.any(unknown_cells):
+        counts = np.bincount(occ[unknown_cells], minlength=256)
+        unknown_level = int(np.argmax(counts))
+    else:
+        unknown_level = 127
+    level = unknown_level + 0.3 * (255 - unknown_level)
+    return (m.state == OCCUPIED) | (occ >= level)
+
+
+def known_points(m: OccupancyMap, *, state: int | None = None) -> FloatArray:
+    """Centres (x, y) in the map's frame of its cells with ``state`` (default: all known)."""
+    mask = (m.state != UNKNOWN) if state is None else (m.state == state)
+    rows, cols = np.nonzero(mask)
+    x, y = m.pixel_to_world(cols, rows)
+    return np.stack([x, y], axis=1)
+
+
+def footprint(local: OccupancyMap) -> tuple[FloatArray, float]:
+    """Centroid (slam frame) of the local map's known cells and the radius that holds them all."""
+    pts = known_points(local)
+    if len(pts) == 0:
+        raise ValueError("the local map has no known cells")
+    centre = pts.mean(axis=0)
+    radius = float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max()) + local.resolution
+    return centre, radius
+
+
+def make_view(
+    global_map: OccupancyMap,
+    local: OccupancyMap,
+    prior: Transform2D,
+    *,
+    search_xy_m: float,
+    margin_m: float = 1.0,
+) -> GlobalView:
+    """Crop and resample the global map around where the prior puts the local map.
+
+    The work resolution is the finer of the two maps' resolutions, so that neither map loses
+    detail. Only the crop is touched, never the whole global map.
+    """
+    centre, radius = footprint(local)
+    cx, cy = prior.apply(centre)
+    half = radius + search_xy_m + margin_m
+    resolution = min(global_map.resolution, local.resolution)
+    grid = Grid.covering(cx - half, cy - half, cx + half, cy + half, resolution)
+    src = Grid.of_map(global_map)
+    # Crop the source to the box first: the warp then reads only the pixels it needs.
+    c0, r0 = np.floor(src.to_pixel([[cx - half, cy + half]])[0]).astype(int) - 1
+    c1, r1 = np.ceil(src.to_pixel([[cx + half, cy - half]])[0]).astype(int) + 2
+    c0, r0 = max(c0, 0), max(r0, 0)
+    c1, r1 = min(c1, global_map.width), min(r1, global_map.height)
+    if c1 <= c0 or r1 <= r0:
+        state = np.full(grid.shape, UNKNOWN, np.uint8)
+        return GlobalView(grid, state, np.zeros(grid.shape, bool))
+    crop_grid = Grid(
+        src.x0 + c0 * src.resolution,
+        src.y0 + (global_map.height - r1) * src.resolution,
+        src.resolution,
+        c1 - c0,
+        r1 - r0,
+    )
+    crop = OccupancyMap(
+        global_map.state[r0:r1, c0:c1],
+        global_map.occupancy[r0:r1, c0:c1],
+        global_map.resolution,
+        (crop_grid.x0, crop_grid.y0, 0.0),
+    )
+    state = resample(crop.state, crop_grid, grid)
+    structure_u8 = structure_mask(crop).astype(np.uint8)
+    structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
+    return GlobalView(grid, state, structure)
+
+
+# --- scoring ---------------------------------------------------------------------------------
+
+
+def _distance_field(structure: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Distance in pixels from every cell to the nearest structure cell."""
+    free = np.where(structure, 0, 255).astype(np.uint8)
+    if not structure.any():
+        return np.full(structure.shape, 1e6, np.float32)
+    return cv2.distanceTransform(free, cv2.DIST_L2, 5)
+
+
+def _lookup(image: NDArray[np.generic], grid: Grid, xy: FloatArray, fill: float) -> FloatArray:
+    """Nearest-pixel values of ``image`` at world points (fill outside)."""
+    px = np.rint(grid.to_pixel(xy)).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
+    out = np.full(len(xy), fill, dtype=float)
+    out[inside] = image[px[inside, 1], px[inside, 0]]
+    return out
+
+
+def agreement(
+    points_slam: FloatArray,
+    nav2_from_slam: Transform2D,
+    grid: Grid,
+    distance_px: NDArray[np.float32],
+    *,
+    tolerance_m: float,
+) -> float:
+    """Share of local wall points that land within ``tolerance_m`` of a global wall."""
+    if len(points_slam) == 0:
+        return 0.0
+    d = _lookup(distance_px, grid, nav2_from_slam.apply(points_slam), fill=1e6)
+    return float(np.mean(d * grid.resolution <= tolerance_m))
+
+
+# --- correlative search ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Level:
+    grid: Grid
+    field: NDArray[np.float32]  # likelihood of a wall, 0..1, padded by `pad` pixels
+    pad: int
+
+
+def _make_level(view: GlobalView, resolution: float, pad: int) -> _Level:
+    grid = view.grid.rescaled(resolution)
+    if grid.resolution > view.grid.resolution * 1.01:
+        # Max-pool the walls so that thin ones survive the downsampling.
+        area = cv2.resize(
+            view.structure.astype(np.float32),
+            (grid.width, grid.height),
+            interpolation=cv2.INTER_AREA,
+        )
+        structure = area > 0.0
+    else:
+        structure = view.structure
+        grid = view.grid
+    d = _distance_field(structure)
+    field = np.exp(-0.5 * (d / 1.0) ** 2).astype(np.float32)
+    field = cv2.copyMakeBorder(field, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
+    return _Level(grid, field, pad)
+
+
+def _thin(points: FloatArray, resolution: float) -> FloatArray:
+    """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size)."""
+    keys = np.floor(points / resolution).astype(np.int64)
+    _, index = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(index)]
+
+
+def _search_level(
+    level: _Level,
+    points: FloatArray,
+    centre: FloatArray,
+    target: FloatArray,
+    thetas: FloatArray,
+    shift_px: int,
+) -> list[tuple[float, float, float, float]]:
+    """For every rotation, the best translation of the cloud within +-shift_px pixels.
+
+    The candidate maps the local centroid ``centre`` to ``target`` + shift after rotating the
+    cloud by theta about it. Returns (score, theta, target_x, target_y) per theta.
+    """
+    grid, field, pad = level.grid, level.field, level.pad
+    assert shift_px <= pad
+    rel = points - centre
+    out = []
+    for theta in thetas:
+        c, s = math.cos(theta), math.sin(theta)
+        q = rel @ np.array([[c, s], [-s, c]]) + target
+        px = np.rint(grid.to_pixel(q)).astype(np.int64) + pad
+        cmin, rmin = px.min(axis=0)
+        cmax, rmax = px.max(axis=0)
+        cmin, rmin = max(cmin, shift_px), max(rmin, shift_px)
+        cmax = min(cmax, field.shape[1] - 1 - shift_px)
+        rmax = min(rmax, field.shape[0] - 1 - shift_px)
+        if cmax < cmin or rmax < rmin:
+            out.append((0.0, float(theta), float(target[0]), float(target[1])))
+            continue
+        keep = (px[:, 0] >= cmin) & (px[:, 0] <= cmax) & (px[:, 1] >= rmin) & (px[:, 1] <= rmax)
+        template = np.zeros((rmax - rmin + 1, cmax - cmin + 1), np.float32)
+        template[px[keep, 1] - rmin, px[keep, 0] - cmin] = 1.0
+        region = field[rmin - shift_px : rmax + shift_px + 1, cmin - shift_px : cmax + shift_px + 1]
+        response = cv2.matchTemplate(region, template, cv2.TM_CCORR) / max(len(points), 1)
+        _, best, _, (j, i) = cv2.minMaxLoc(response)
+        dx = (j - shift_px) * grid.resolution
+        dy = -(i - shift_px) * grid.resolution
+        out.append((float(best), float(theta), float(target[0] + dx), float(target[1] + dy)))
+    return out
+
+
+def _to_transform(theta: float, centre: FloatArray, target_xy: FloatArray) -> Transform2D:
+    c, s = math.cos(theta), math.sin(theta)
+    tx = target_xy[0] - (c * centre[0] - s * centre[1])
+    ty = target_xy[1] - (s * centre[0] + c * centre[1])
+    return Transform2D(wrap_angle(theta), float(tx), float(ty))
+
+
+def _local_maxima(rows: list[tuple[float, float, float, float]], keep: int) -> list[int]:
+    """Indices of the best rotation candidates: local maxima over theta, best first."""
+    scores = np.array([r[0] for r in rows])
+    n = len(scores)
+    idx = [
+        i
+        for i in range(n)
+        if scores[i] >= scores[max(i - 1, 0)] and scores[i] >= scores[min(i + 1, n - 1)]
+    ]
+    idx.sort(key=lambda i: -scores[i])
+    return idx[:keep]
+
+
+# --- ICP polish ------------------------------------------------------------------------------
+
+
+def _nearest_wall_field(structure: NDArray[np.bool_]) -> tuple[NDArray[np.float32], FloatArray]:
+    """Distance (px) to, and (col, row) of, the nearest structure cell, for every cell."""
+    free = np.where(structure, 0, 255).astype(np.uint8)
+    dist, labels = cv2.distanceTransformWithLabels(
+        free, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    rows, cols = np.nonzero(structure)
+    # Labels of zero pixels are numbered in row-major scan order, starting at 1.
+    lut = np.zeros((len(rows) + 1, 2))
+    lut[1:, 0], lut[1:, 1] = cols, rows
+    return dist, lut[labels]
+
+
+def icp(
+    points_slam: FloatArray,
+    start: Transform2D,
+    grid: Grid,
+    nearest_colrow: FloatArray,
+    *,
+    max_distance_m: float,
+    iterations: int = 30,
+) -> Transform2D:
+    """Point-to-point ICP of local wall points onto the nearest global wall cells.
+
+    Correspondences come from a precomputed nearest-wall field, so every iteration is one lookup
+    and one closed-form rigid fit (no scale). Pairs farther than ``max_distance_m`` (new
+    obstacles, people, drift) are left out; the threshold shrinks to a third over the iterations.
+    """
+    transform = start
+    h, w = nearest_colrow.shape[:2]
+    for k in range(iterations):
+        limit = max_distance_m * (1.0 - 0.66 * k / max(iterations - 1, 1))
+        q = transform.apply(points_slam)
+        px = np.rint(grid.to_pixel(q)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        target = np.zeros_like(q)
+        target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
+        d = np.sqrt(((q - target) ** 2).sum(axis=1))
+        use = inside & (d <= limit)
+        if use.sum() < 10:
+            break
+        src, dst = points_slam[use], target[use]
+        ms, md = src.mean(axis=0), dst.mean(axis=0)
+        cov = (src - ms).T @ (dst - md)
+        theta = math.atan2(cov[0, 1] - cov[1, 0], cov[0, 0] + cov[1, 1])
+        c, s = math.cos(theta), math.sin(theta)
+        t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
+        new = Transform2D(theta, float(t[0]), float(t[1]))
+        step = math.hypot(new.tx - transform.tx, new.ty - transform.ty)
+        transform = new
+        if step < 1e-4 and k > 5:
+            break
+    return transform
+
+
+# --- the whole refinement --------------------------------------------------------------------
+
+
+def _distance(a: Transform2D, b: Transform2D, centre: FloatArray, radius: float) -> float:
+    """How far apart two transforms put the local map: metres at the centroid, plus the arc."""
+    da = a.apply(centre) - b.apply(centre)
+    return float(math.hypot(da[0], da[1]) + radius * abs(wrap_angle(a.theta - b.theta)))
+
+
+def align(
+    local: OccupancyMap,
+    view: GlobalView,
+    prior: Transform2D,
+    *,
+    refine: bool = True,
+    search_xy_m: float = 2.5,
+    search_theta_rad: float = math.radians(35.0),
+    min_score: float = 0.45,
+    min_gain: float = 0.02,
+    tolerance_m: float = 0.1,
+    candidates: int = 6,
+) -> Alignment:
+    """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
+
+    1. Coarse correlative search over rotation and translation around the prior, at a
+       resolution chosen from the map size so that the cost stays bounded.
+    2. The best few rotation candidates, and the prior itself, descend a pyramid to the work
+       resolution, and an ICP polish finishes each.
+    3. Every candidate is scored on the same cells (:func:`agreement`); among those within a
+       whisker of the best, the one nearest the prior wins (repeated structure), and it
+       replaces the prior only when it scores at least ``min_gain`` more.
+
+    A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
+    """
+    walls = known_points(local, state=OCCUPIED)
+    warnings: list[str] = []
+    dist_px = _distance_field(view.structure)
+    prior_score = agreement(walls, prior, view.grid, dist_px, tolerance_m=tolerance_m)
+    if len(walls) < 20 or not view.structure.any():
+        warnings.append("too few walls in the local or global map to check the alignment")
+        return Alignment(
+            prior, prior, "pose", False, prior_score, prior_score, False, tuple(warnings)
+        )
+    if not refine:
+        trusted = prior_score >= min_score
+        if not trusted:
+            warnings.append(_untrusted(prior_score, min_score))
+        return Alignment(
+            prior, prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings)
+        )
+
+    centre = walls.mean(axis=0)
+    radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
+    target0 = prior.apply(centre)
+
+    # Coarse level: about 60 pixels across the cloud, never finer than the work grid.
+    res0 = float(np.clip(radius / 30.0, view.grid.resolution, 0.5))
+    levels_res = [res0]
+    while levels_res[-1] / 2.0 >= view.grid.resolution * 1.5:
+        levels_res.append(levels_res[-1] / 2.0)
+    shift0 = math.ceil(search_xy_m / res0) + 1
+    pad = shift0 + 4
+    levels = [_make_level(view, r, pad) for r in levels_res]
+
+    step0 = res0 / radius
+    n = max(1, math.ceil(search_theta_rad / step0))
+    thetas = prior.theta + step0 * np.arange(-n, n + 1)
+    coarse = _search_level(levels[0], _thin(walls, res0), centre, target0, thetas, shift0)
+    seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
+    seeds.append((prior.theta, target0))
+
+    _, nearest = _nearest_wall_field(view.structure)
+    results: list[tuple[float, Transform2D]] = []
+    for theta, target in seeds:
+        step = step0
+        for level in levels[1:]:
+            step /= 2.0
+            pts = _thin(walls, level.grid.resolution)
+            shift = min(3, level.pad)
+            rows = _search_level(level, pts, centre, target, theta + step * np.arange(-3, 4), shift)
+            best = max(rows)
+            theta, target = best[1], np.array(best[2:])
+        candidate = _to_transform(theta, centre, target)
+        candidate = icp(
+            walls, candidate, view.grid, nearest, max_distance_m=max(0.3, 4 * view.grid.resolution)
+        )
+        score = agreement(walls, candidate, view.grid, dist_px, tolerance_m=tolerance_m)
+        results.append((score, candidate))
+
+    best_score = max(s for s, _ in results)
+    near_best = [(s, t) for s, t in results if s >= best_score - 0.02]
+    score, chosen = min(near_best, key=lambda st: _distance(st[1], prior, centre, radius))
+    refined = score >= prior_score + min_gain
+    if not refined:
+        chosen, score = prior, prior_score
+    trusted = score >= min_score
+    if not trusted:
+        warnings.append(_untrusted(score, min_score))
+    method = "pose+correlative+icp" if refined else "pose"
+    return Alignment(chosen, prior, method, refined, score, prior_score, trusted, tuple(warnings))
+
+
+def _untrusted(score: float, min_score: float) -> str:
+    return (
+        f"could not align the local map onto the global map (agreement {score:.2f} < "
+        f"{min_score:.2f}): no differences reported; check the robot's localisation"
+    )
+
+
+__all__ = [
+    "FREE",
+    "Alignment",
+    "GlobalView",
+    "agreement",
+    "align",
+    "footprint",
+    "icp",
+    "known_points",
+    "make_view",
+    "structure_mask",
+]

@@ -1,0 +1,126 @@
+"""Axis-aligned rasters in a metric frame, and resampling maps into them.
+
+A :class:`Grid` is a raster laid over a frame (usually nav2): arrays on it are indexed
+``[row, col]`` with row 0 at the top, and the centre of pixel ``(col c, row k)`` is
+``x = x0 + (c + 0.5) r``, ``y = y0 + (height - k - 0.5) r`` (the ROS map convention).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mapserver.geometry import Transform2D
+from mapserver.maps import UNKNOWN, OccupancyMap
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A raster of ``height`` x ``width`` pixels of side ``resolution`` metres whose lower-left
+    corner is at ``(x0, y0)``."""
+
+    x0: float
+    y0: float
+    resolution: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if not self.resolution > 0:
+            raise ValueError(f"resolution must be > 0, got {self.resolution}")
+        if self.width < 1 or self.height < 1:
+            raise ValueError(f"grid must have at least one pixel, got {self.width}x{self.height}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    @staticmethod
+    def of_map(m: OccupancyMap) -> Grid:
+        """The grid of a map's own pixels, in the map's frame."""
+        return Grid(m.origin[0], m.origin[1], m.resolution, m.width, m.height)
+
+    @staticmethod
+    def covering(min_x: float, min_y: float, max_x: float, max_y: float, resolution: float) -> Grid:
+        """The smallest grid of the given resolution that covers a box (metres)."""
+        width = max(1, math.ceil((max_x - min_x) / resolution))
+        height = max(1, math.ceil((max_y - min_y) / resolution))
+        return Grid(min_x, min_y, resolution, width, height)
+
+    def pixel_from_world(self) -> NDArray[np.float64]:
+        """3x3 matrix taking world (x, y, 1) to pixel (col, row, 1)."""
+        r = self.resolution
+        return np.array(
+            [
+                [1.0 / r, 0.0, -self.x0 / r - 0.5],
+                [0.0, -1.0 / r, self.height + self.y0 / r - 0.5],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+
+    def world_from_pixel(self) -> NDArray[np.float64]:
+        return np.linalg.inv(self.pixel_from_world())
+
+    def to_pixel(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """(N, 2) world points -> (N, 2) fractional (col, row)."""
+        p = np.asarray(xy, dtype=float).reshape(-1, 2)
+        col = (p[:, 0] - self.x0) / self.resolution - 0.5
+        row = self.height - (p[:, 1] - self.y0) / self.resolution - 0.5
+        return np.stack([col, row], axis=1)
+
+    def to_world(self, colrow: ArrayLike) -> NDArray[np.float64]:
+        """(N, 2) (col, row) -> (N, 2) world points (integer values are pixel centres)."""
+        p = np.asarray(colrow, dtype=float).reshape(-1, 2)
+        x = self.x0 + (p[:, 0] + 0.5) * self.resolution
+        y = self.y0 + (self.height - p[:, 1] - 0.5) * self.resolution
+        return np.stack([x, y], axis=1)
+
+    def rescaled(self, resolution: float) -> Grid:
+        """A grid over the same box with another resolution (the box grows to whole pixels)."""
+        return Grid.covering(
+            self.x0,
+            self.y0,
+            self.x0 + self.width * self.resolution,
+            self.y0 + self.height * self.resolution,
+            resolution,
+        )
+
+    def extent(self) -> tuple[float, float, float, float]:
+        r = self.resolution
+        return (self.x0, self.y0, self.x0 + self.width * r, self.y0 + self.height * r)
+
+
+def warp_matrix(src: Grid, dst: Grid, dst_from_src: Transform2D) -> NDArray[np.float64]:
+    """2x3 matrix taking a ``dst`` pixel to the ``src`` pixel that lands on it (for
+    ``cv2.warpAffine(..., flags=WARP_INVERSE_MAP)``)."""
+    m = src.pixel_from_world() @ dst_from_src.inverse().matrix() @ dst.world_from_pixel()
+    return m[:2]
+
+
+def resample(
+    image: NDArray[np.uint8],
+    src: Grid,
+    dst: Grid,
+    dst_from_src: Transform2D | None = None,
+    *,
+    fill: int = UNKNOWN,
+    interpolation: int = cv2.INTER_NEAREST,
+) -> NDArray[np.uint8]:
+    """Resample ``image`` (on ``src``) onto ``dst``; pixels from outside ``image`` get ``fill``.
+
+    Returns a new (dst.height, dst.width) array; ``image`` is not modified.
+    """
+    transform = dst_from_src or Transform2D.identity()
+    matrix = warp_matrix(src, dst, transform)
+    return cv2.warpAffine(
+        image,
+        matrix,
+        (dst.width, dst.height),
+        flags=interpolation | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=fill,
+    )
