@@ -58,9 +58,10 @@ class DiffConfig(_Frozen):
 
     tolerance_m: float = Field(0.15, ge=0)
     """A wall seen this close to where the global map has it is not a change (misalignment)."""
-    min_area_m2: float = Field(0.02, ge=0)
-    """Smaller differences are noise."""
-    min_pixels: int = Field(5, ge=1)
+    min_local_cells: int = Field(4, ge=1)
+    """Differences smaller than this many local-map cells are noise (scan specks)."""
+    min_area_m2: float = Field(0.0, ge=0)
+    """An absolute floor on a difference's area, on top of ``min_local_cells``."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

@@ -6,11 +6,31 @@ encoded images) without writing anything; publishing it is :mod:`mapserver.outbo
 
 from __future__ import annotations
 
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+import numpy as np
+
+from mapserver import align as align_stage
+from mapserver import cluster as cluster_stage
+from mapserver import diff as diff_stage
+from mapserver import render, roi
+from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id
 from mapserver.config import Config
+from mapserver.errors import BundleError, BundleIncomplete, MapserverError, ProcessingError
+from mapserver.geometry import Pose2D, Transform2D
+from mapserver.grid import Grid, resample
+from mapserver.maps import OccupancyMap, load_map
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -26,7 +46,267 @@ class Outcome:
     images: dict[str, bytes]
 
 
+class _Stages:
+    """Times each stage, logs one line per stage with the bundle id, and tags errors with it."""
+
+    def __init__(self, bundle_id: str) -> None:
+        self.bundle_id = bundle_id
+        self.timings_ms: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        except MapserverError as error:
+            if error.stage == error.default_stage and name != "load":
+                error.stage = name
+            raise
+        except (ValueError, cv2_error()) as error:  # pragma: no cover - defensive
+            raise ProcessingError(f"{name} failed: {error}", stage=name) from error
+        finally:
+            ms = (time.perf_counter() - start) * 1000.0
+            self.timings_ms[name] = round(ms, 1)
+            log.info("%s: %s %.1f ms", self.bundle_id, name, ms)
+
+    def run(self, name: str, fn: Callable[[], T]) -> T:
+        with self.stage(name):
+            return fn()
+
+
+def cv2_error() -> type[Exception]:
+    import cv2
+
+    return cv2.error  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    files: BundleFiles
+    local: OccupancyMap
+    global_map: OccupancyMap
+
+
+def _load(bundle_dir: Path, config: Config) -> _Inputs:
+    try:
+        files = check_bundle_files(bundle_dir)
+    except BundleIncomplete as error:
+        # process runs on bundles said to be complete: a missing file is an error here.
+        raise BundleError(error.problem, file=error.file) from None
+    local = load_map(files.slam_yaml, max_pixels=config.max_image_pixels, confine_to=bundle_dir)
+    if files.nav2_yaml is not None:
+        global_map = load_map(
+            files.nav2_yaml, max_pixels=config.max_image_pixels, confine_to=bundle_dir
+        )
+    elif config.reference_map is not None:
+        global_map = load_map(config.reference_map, max_pixels=config.max_image_pixels)
+    else:
+        raise BundleError(
+            "the manifest names no nav2_map and no reference_map is configured",
+            file=bundle_dir / "bundle.yaml",
+        )
+    if not (local.state != 255).any():
+        raise BundleError("the local map has no known cells", file=files.slam_image)
+    return _Inputs(files, local, global_map)
+
+
+def _warp_local(local: OccupancyMap, grid: Grid, nav2_from_slam: Transform2D) -> np.ndarray:
+    return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
+
+
+def _route_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> np.ndarray | None:
+    poses = files.manifest.trajectory_poses()
+    if not poses:
+        return None
+    return nav2_from_slam.apply(np.array([[p.x, p.y] for p in poses]))
+
+
+def _robot_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> Pose2D:
+    slam = files.manifest.pose.slam.to_pose()
+    x, y = nav2_from_slam.apply(np.array([slam.x, slam.y]))
+    return Pose2D(float(x), float(y), slam.yaw + nav2_from_slam.theta)
+
+
+def _make_roi(
+    config: Config,
+    files: BundleFiles,
+    nav2_from_slam: Transform2D,
+    local_state: np.ndarray,
+    grid: Grid,
+    warnings: list[str],
+) -> roi.Roi:
+    settings = config.pipeline.roi
+    observed = roi.observed(local_state, grid)
+    if settings.strategy == "box":
+        region = roi.box(_robot_nav2(files, nav2_from_slam), grid, size_m=settings.box_size_m)
+    elif settings.strategy == "heading":
+        region = roi.heading(_robot_nav2(files, nav2_from_slam), grid, size_m=settings.box_size_m)
+    elif settings.strategy == "trajectory":
+        route = _route_nav2(files, nav2_from_slam)
+        if route is None:
+            warnings.append("roi 'trajectory' needs a trajectory in bundle.yaml; used 'observed'")
+            return observed
+        region = roi.trajectory(route, grid, radius_m=settings.trajectory_radius_m)
+    else:
+        return observed
+    # Unknown cells never differ anyway; intersecting keeps the mask honest for the images.
+    return roi.Roi(region.strategy, region.mask & observed.mask, region.polygon)
+
+
+def _difference_doc(index: int, d: cluster_stage.Difference) -> dict[str, Any]:
+    return {
+        "id": index,
+        "kind": d.kind,
+        "centroid": {"x": round(d.centroid[0], 3), "y": round(d.centroid[1], 3)},
+        "bbox": {
+            "min_x": round(d.bbox[0], 3),
+            "min_y": round(d.bbox[1], 3),
+            "max_x": round(d.bbox[2], 3),
+            "max_y": round(d.bbox[3], 3),
+        },
+        "area_m2": round(d.area_m2, 4),
+        "pixels": d.pixels,
+    }
+
+
 def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = None) -> Outcome:
     """Process one complete bundle. Raises a :class:`~mapserver.errors.MapserverError` subclass
     for bad input (its ``stage`` says where it failed). Reads the inputs, never modifies them."""
-    raise NotImplementedError
+    bundle_dir = Path(bundle_dir)
+    bundle_id = bundle_id or bundle_dir.resolve().name
+    if not is_valid_bundle_id(bundle_id):
+        raise BundleError(
+            f"invalid bundle id '{bundle_id}': use letters, digits, '.', '_' and '-', "
+            "starting with a letter or digit, at most 128 characters",
+            file=bundle_dir,
+        )
+    stages = _Stages(bundle_id)
+    settings = config.pipeline
+    inputs = stages.run("load", lambda: _load(bundle_dir, config))
+    files, local, global_map = inputs.files, inputs.local, inputs.global_map
+    warnings = list(global_map.warnings) + list(local.warnings)
+    prior = files.manifest.nav2_from_slam_prior()
+
+    def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
+        view = align_stage.make_view(
+            global_map, local, prior, search_xy_m=settings.align.search_xy_m
+        )
+        result = align_stage.align(
+            local,
+            view,
+            prior,
+            refine=settings.align.refine,
+            search_xy_m=settings.align.search_xy_m,
+            search_theta_rad=math.radians(settings.align.search_theta_deg),
+            min_score=settings.align.min_score,
+            min_gain=settings.align.min_gain,
+        )
+        return view, result
+
+    view, alignment = stages.run("align", _align)
+    warnings += alignment.warnings
+    transform = alignment.nav2_from_slam
+    grid = view.grid
+
+    local_state = stages.run("warp", lambda: _warp_local(local, grid, transform))
+    region = stages.run(
+        "roi", lambda: _make_roi(config, files, transform, local_state, grid, warnings)
+    )
+
+    def _diff() -> diff_stage.DiffMasks:
+        if not alignment.trusted:
+            empty = np.zeros(grid.shape, bool)
+            return diff_stage.DiffMasks(empty, empty.copy())
+        raw = diff_stage.raw_differences(
+            view.state,
+            local_state,
+            region.mask,
+            resolution=grid.resolution,
+            tolerance_m=settings.diff.tolerance_m,
+            global_walls=view.structure,
+        )
+        min_px = max(
+            1, round(settings.diff.min_local_cells * (local.resolution / grid.resolution) ** 2)
+        )
+        return diff_stage.filter_noise(raw, min_pixels=min_px)
+
+    masks = stages.run("diff", _diff)
+
+    def _cluster() -> list[cluster_stage.Difference]:
+        d = settings.diff
+        min_area = max(d.min_area_m2, d.min_local_cells * local.resolution**2)
+        found = []
+        for kind, mask in (("added", masks.added), ("removed", masks.removed)):
+            found += cluster_stage.cluster_mask(
+                mask,
+                grid,
+                kind,
+                eps_m=d.cluster_eps_m,
+                min_samples=d.cluster_min_samples,
+                min_area_m2=min_area,
+            )
+        return cluster_stage.sort_by_area(found)
+
+    differences = stages.run("cluster", _cluster)
+
+    def _render() -> dict[str, bytes]:
+        r = settings.render
+        window = render.window_for(
+            grid, region.mask, margin_m=r.margin_m, max_side_px=r.max_side_px
+        )
+        title = f"{bundle_id}  robot {files.manifest.robot}  {files.manifest.stamp}"
+        over = render.overlay(
+            grid,
+            window,
+            view.state,
+            local_state,
+            region.polygon,
+            differences,
+            route_xy=_route_nav2(files, transform),
+            title=title,
+        )
+        dimg = render.diff_image(grid, window, view.state, masks.added, masks.removed, differences)
+        return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
+
+    images = stages.run("render", _render)
+
+    image_name = global_map.image.name if global_map.image is not None else ""
+    result: dict[str, Any] = {
+        "format": 1,
+        "bundle": bundle_id,
+        "robot": files.manifest.robot,
+        "stamp": files.manifest.stamp,
+        "processed_at": datetime.now(timezone.utc)
+        .isoformat(timespec="milliseconds")
+        .replace("+00:00", "Z"),
+        "status": "ok",
+        "map": {
+            "image": image_name,
+            "resolution": global_map.resolution,
+            "origin": [float(v) for v in global_map.origin],
+            "width": global_map.width,
+            "height": global_map.height,
+        },
+        "alignment": {
+            "theta": round(transform.theta, 6),
+            "tx": round(transform.tx, 4),
+            "ty": round(transform.ty, 4),
+            "method": alignment.method,
+            "refined": alignment.refined,
+            "score": round(alignment.score, 3),
+            "prior_score": round(alignment.prior_score, 3),
+        },
+        "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
+        "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],
+        "warnings": warnings,
+        "timings_ms": dict(stages.timings_ms),
+    }
+    log.info(
+        "%s: done, %d differences, alignment %s score %.2f, %.0f ms",
+        bundle_id,
+        len(differences),
+        alignment.method,
+        alignment.score,
+        sum(stages.timings_ms.values()),
+    )
+    return Outcome(bundle_id, result, images)

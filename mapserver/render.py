@@ -1,0 +1,191 @@
+"""Annotated images: ``overlay.png`` (global map, local map, ROI, route, numbered boxes) and
+``diff.png`` (the filtered difference mask), both over the ROI plus a margin, never the whole
+global map."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mapserver.cluster import Difference
+from mapserver.grid import Grid
+from mapserver.maps import FREE, OCCUPIED
+
+BGR = tuple[int, int, int]
+ADDED: BGR = (0, 0, 230)
+REMOVED: BGR = (230, 60, 0)
+LOCAL: BGR = (40, 150, 40)
+ROI_COLOUR: BGR = (0, 190, 255)
+ROUTE: BGR = (200, 0, 200)
+
+
+@dataclass(frozen=True)
+class Window:
+    """The part of the work grid an image shows, and the scale from grid pixels to image pixels."""
+
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    scale: float
+
+    def to_image(self, grid: Grid, xy: NDArray[np.float64]) -> NDArray[np.int32]:
+        px = grid.to_pixel(xy) - np.array([self.col0, self.row0])
+        return np.rint((px + 0.5) * self.scale - 0.5).astype(np.int32)
+
+
+def window_for(
+    grid: Grid,
+    roi_mask: NDArray[np.bool_],
+    *,
+    margin_m: float,
+    max_side_px: int,
+    min_side_px: int = 700,
+) -> Window:
+    """The ROI's bounding box plus ``margin_m``, clipped to the grid, with a display scale that
+    makes small areas legible and large ones small enough."""
+    rows, cols = np.nonzero(roi_mask)
+    if len(rows) == 0:
+        rows, cols = np.array([0, grid.height - 1]), np.array([0, grid.width - 1])
+    m = round(margin_m / grid.resolution)
+    r0, r1 = max(int(rows.min()) - m, 0), min(int(rows.max()) + m + 1, grid.height)
+    c0, c1 = max(int(cols.min()) - m, 0), min(int(cols.max()) + m + 1, grid.width)
+    side = max(r1 - r0, c1 - c0)
+    scale = 1.0
+    if side > max_side_px:
+        scale = max_side_px / side
+    elif side < min_side_px:
+        scale = float(math.ceil(min_side_px / side))
+    return Window(r0, c0, r1 - r0, c1 - c0, scale)
+
+
+def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
+    crop = image[window.row0 : window.row0 + window.rows, window.col0 : window.col0 + window.cols]
+    size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
+    interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
+    return cv2.resize(crop, size, interpolation=interpolation)
+
+
+def _mask_scaled(mask: NDArray[np.bool_], window: Window) -> NDArray[np.bool_]:
+    # Max-pool when shrinking, so that thin walls and small differences stay visible.
+    return _scaled(mask.astype(np.uint8) * 255, window) > 0
+
+
+def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:
+    x, y = 8, 8
+    height = 22 * len(items) + 8
+    width = (
+        12 + max(cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0] for t, _ in items) + 30
+    )
+    cv2.rectangle(image, (x - 4, y - 4), (x + width, y + height), (255, 255, 255), -1)
+    cv2.rectangle(image, (x - 4, y - 4), (x + width, y + height), (90, 90, 90), 1)
+    for i, (text, colour) in enumerate(items):
+        cy = y + 12 + 22 * i
+        cv2.rectangle(image, (x + 2, cy - 7), (x + 20, cy + 7), colour, -1)
+        cv2.putText(
+            image,
+            text,
+            (x + 28, cy + 5),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (20, 20, 20),
+            1,
+            cv2.LINE_AA,
+        )
+
+
+def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Difference]) -> None:
+    for number, d in enumerate(diffs, start=1):
+        colour = ADDED if d.kind == "added" else REMOVED
+        lo = window.to_image(grid, np.array([[d.bbox[0], d.bbox[3]]]))[0]
+        hi = window.to_image(grid, np.array([[d.bbox[2], d.bbox[1]]]))[0]
+        pad = 3
+        p0, p1 = (int(lo[0]) - pad, int(lo[1]) - pad), (int(hi[0]) + pad, int(hi[1]) + pad)
+        cv2.rectangle(image, p0, p1, colour, 2)
+        label = str(number)
+        (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.55, 2)
+        tl = (p0[0], max(p0[1] - th - 6, 0))
+        cv2.rectangle(image, tl, (tl[0] + tw + 6, tl[1] + th + 6), colour, -1)
+        cv2.putText(
+            image,
+            label,
+            (tl[0] + 3, tl[1] + th + 2),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.55,
+            (255, 255, 255),
+            2,
+            cv2.LINE_AA,
+        )
+
+
+def overlay(
+    grid: Grid,
+    window: Window,
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    roi_polygon: list[tuple[float, float]],
+    differences: list[Difference],
+    *,
+    route_xy: NDArray[np.float64] | None = None,
+    title: str = "",
+) -> NDArray[np.uint8]:
+    """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
+    the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
+    g = _scaled(global_state, window)
+    image = np.full(g.shape + (3,), 205, np.uint8)
+    image[g == FREE] = 255
+    image[g == OCCUPIED] = 60
+    local_occ = _mask_scaled(local_state == OCCUPIED, window)
+    image[local_occ] = LOCAL
+    if roi_polygon:
+        pts = window.to_image(grid, np.array(roi_polygon))
+        cv2.polylines(image, [pts], True, ROI_COLOUR, 2, cv2.LINE_AA)
+    if route_xy is not None and len(route_xy) > 1:
+        cv2.polylines(image, [window.to_image(grid, route_xy)], False, ROUTE, 2, cv2.LINE_AA)
+    _boxes(image, grid, window, differences)
+    n_added = sum(d.kind == "added" for d in differences)
+    items = [
+        (f"added obstacle ({n_added})", ADDED),
+        (f"removed obstacle ({len(differences) - n_added})", REMOVED),
+        ("local map walls", LOCAL),
+        ("region of interest", ROI_COLOUR),
+    ]
+    if route_xy is not None and len(route_xy) > 1:
+        items.append(("robot route", ROUTE))
+    _legend(image, items)
+    if title:
+        h = image.shape[0]
+        cv2.putText(
+            image, title, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1, cv2.LINE_AA
+        )
+    return image
+
+
+def diff_image(
+    grid: Grid,
+    window: Window,
+    global_state: NDArray[np.uint8],
+    added: NDArray[np.bool_],
+    removed: NDArray[np.bool_],
+    differences: list[Difference],
+) -> NDArray[np.uint8]:
+    """The filtered difference mask (added red, removed blue) over faint global walls."""
+    g = _scaled(global_state, window)
+    image = np.full(g.shape + (3,), 255, np.uint8)
+    image[g == OCCUPIED] = 215
+    image[_mask_scaled(added, window)] = ADDED
+    image[_mask_scaled(removed, window)] = REMOVED
+    _boxes(image, grid, window, differences)
+    _legend(image, [("added", ADDED), ("removed", REMOVED)])
+    return image
+
+
+def encode_png(image: NDArray[np.uint8]) -> bytes:
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return bytes(data.tobytes())
