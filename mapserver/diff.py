@@ -82,7 +82,7 @@ def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     """``mask`` without its 8-connected components smaller than ``min_pixels``."""
     if not mask.any():
         return mask.copy()
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
     keep[0] = False
     return keep[labels]

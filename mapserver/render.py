@@ -136,7 +136,7 @@ def overlay(
     """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
     the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
     g = _scaled(global_state, window)
-    image = np.full(g.shape + (3,), 205, np.uint8)
+    image = np.full((*g.shape, 3), 205, np.uint8)
     image[g == FREE] = 255
     image[g == OCCUPIED] = 60
     local_occ = _mask_scaled(local_state == OCCUPIED, window)
@@ -175,7 +175,7 @@ def diff_image(
 ) -> NDArray[np.uint8]:
     """The filtered difference mask (added red, removed blue) over faint global walls."""
     g = _scaled(global_state, window)
-    image = np.full(g.shape + (3,), 255, np.uint8)
+    image = np.full((*g.shape, 3), 255, np.uint8)
     image[g == OCCUPIED] = 215
     image[_mask_scaled(added, window)] = ADDED
     image[_mask_scaled(removed, window)] = REMOVED
