@@ -275,7 +275,7 @@ def _local_maxima(rows: list[tuple[float, float, float, float]], keep: int) -> l
 # --- ICP polish ------------------------------------------------------------------------------
 
 
-def _nearest_wall_field(structure: NDArray[np.bool_]) -> tuple[NDArray[np.float32], FloatArray]:
+def nearest_wall_field(structure: NDArray[np.bool_]) -> tuple[NDArray[np.float32], FloatArray]:
     """Distance (px) to, and (col, row) of, the nearest structure cell, for every cell."""
     free = np.where(structure, 0, 255).astype(np.uint8)
     dist, labels = cv2.distanceTransformWithLabels(
@@ -401,7 +401,7 @@ def align(
     seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
     seeds.append((prior.theta, target0))
 
-    _, nearest = _nearest_wall_field(view.structure)
+    _, nearest = nearest_wall_field(view.structure)
     results: list[tuple[float, Transform2D]] = []
     for theta, target in seeds:
         step = step0

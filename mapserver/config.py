@@ -40,7 +40,7 @@ class AlignConfig(_Frozen):
     deform: bool = True
     """Correct SLAM drift with small per-tile shifts after the rigid alignment."""
     deform_tile_m: float = Field(6.0, gt=0)
-    deform_max_shift_m: float = Field(0.4, ge=0)
+    deform_max_shift_m: float = Field(0.8, ge=0)
 
 
 class RoiConfig(_Frozen):
@@ -62,6 +62,11 @@ class DiffConfig(_Frozen):
     """Differences smaller than this many local-map cells are noise (scan specks)."""
     min_area_m2: float = Field(0.0, ge=0)
     """An absolute floor on a difference's area, on top of ``min_local_cells``."""
+    removed_tolerance_m: float = Field(0.25, ge=0)
+    """Removed cells must be this far from any wall the local map sees: rays grazing a wall get
+    few hits and mark slivers of its face free."""
+    min_removed_cells: int = Field(8, ge=1)
+    """A removed obstacle must be seen free over at least this many local-map cells."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

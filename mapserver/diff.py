@@ -42,6 +42,7 @@ def raw_differences(
     *,
     resolution: float,
     tolerance_m: float,
+    removed_tolerance_m: float | None = None,
     global_walls: BoolArray | None = None,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
@@ -56,6 +57,9 @@ def raw_differences(
         Metres per pixel of the grid.
     tolerance_m
         A cell within this distance of a wall in the other map is not a difference.
+    removed_tolerance_m
+        The same for removed cells (default ``tolerance_m``). Worth setting wider: a wall seen
+        at a grazing angle gets few hits, and rays skimming its face mark a sliver of it free.
     global_walls
         Optional (H, W) bool: walls of the global map beyond its occupied cells (grey lines);
         a local wall on them is not new.
@@ -74,7 +78,10 @@ def raw_differences(
         added &= distance_to(g_walls) > tol_px
     removed = g_occ & (local_state == FREE) & roi
     if removed.any():
-        removed &= distance_to(l_occ) > tol_px
+        removed_tol_px = (
+            tolerance_m if removed_tolerance_m is None else removed_tolerance_m
+        ) / resolution
+        removed &= distance_to(l_occ) > removed_tol_px
     return DiffMasks(added, removed)
 
 
@@ -99,4 +106,11 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
     )
 
 
-__all__ = ["FREE", "DiffMasks", "distance_to", "drop_small", "filter_noise", "raw_differences"]
+__all__ = [
+    "FREE",
+    "DiffMasks",
+    "distance_to",
+    "drop_small",
+    "filter_noise",
+    "raw_differences",
+]

@@ -21,13 +21,13 @@ import numpy as np
 from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
 from mapserver import diff as diff_stage
-from mapserver import render, roi
+from mapserver import deform, render, roi
 from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id
 from mapserver.config import Config
 from mapserver.errors import BundleError, BundleIncomplete, MapserverError, ProcessingError
 from mapserver.geometry import Pose2D, Transform2D
-from mapserver.grid import Grid, resample
-from mapserver.maps import OccupancyMap, load_map
+from mapserver.grid import Grid
+from mapserver.maps import OCCUPIED, OccupancyMap, load_map
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -108,10 +108,6 @@ def _load(bundle_dir: Path, config: Config) -> _Inputs:
     if not (local.state != 255).any():
         raise BundleError("the local map has no known cells", file=files.slam_image)
     return _Inputs(files, local, global_map)
-
-
-def _warp_local(local: OccupancyMap, grid: Grid, nav2_from_slam: Transform2D) -> np.ndarray:
-    return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
 
 
 def _route_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> np.ndarray | None:
@@ -208,7 +204,25 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
     transform = alignment.nav2_from_slam
     grid = view.grid
 
-    local_state = stages.run("warp", lambda: _warp_local(local, grid, transform))
+    def _warp() -> tuple[np.ndarray, deform.DriftField | None]:
+        a = settings.align
+        field = None
+        if a.deform and alignment.trusted:
+            walls = align_stage.known_points(local, state=OCCUPIED)
+            _, nearest = align_stage.nearest_wall_field(view.structure)
+            field = deform.estimate_drift(
+                walls,
+                transform,
+                grid,
+                nearest,
+                tile_m=a.deform_tile_m,
+                max_shift_m=a.deform_max_shift_m,
+            )
+        return deform.warp_local(local, grid, transform, field), field
+
+    local_state, drift = stages.run("warp", _warp)
+    if drift is not None and drift.max_shift_m() > 0.1:
+        log.info("%s: drift corrected, up to %.2f m", bundle_id, drift.max_shift_m())
     region = stages.run(
         "roi", lambda: _make_roi(config, files, transform, local_state, grid, warnings)
     )
@@ -223,6 +237,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             region.mask,
             resolution=grid.resolution,
             tolerance_m=settings.diff.tolerance_m,
+            removed_tolerance_m=settings.diff.removed_tolerance_m,
             global_walls=view.structure,
         )
         min_px = max(
@@ -234,9 +249,13 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
 
     def _cluster() -> list[cluster_stage.Difference]:
         d = settings.diff
-        min_area = max(d.min_area_m2, d.min_local_cells * local.resolution**2)
+        cell_m2 = local.resolution**2
         found = []
-        for kind, mask in (("added", masks.added), ("removed", masks.removed)):
+        for kind, mask, cells in (
+            ("added", masks.added, d.min_local_cells),
+            ("removed", masks.removed, max(d.min_local_cells, d.min_removed_cells)),
+        ):
+            min_area = max(d.min_area_m2, cells * cell_m2)
             found += cluster_stage.cluster_mask(
                 mask,
                 grid,

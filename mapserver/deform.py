@@ -1,0 +1,176 @@
+"""SLAM drift: small, smooth corrections on top of the rigid alignment.
+
+slam_toolbox without loop closure bends a long session's map, so no single rigid transform fits
+it everywhere (0.1-0.3 m off at the far end of a 100 m route). A wall doubled by drift is not a
+change. This module estimates, on a lattice of nodes over the local map, the small translation
+that best lays each neighbourhood's walls onto the global walls, smooths those shifts, and warps
+the local map with the resulting displacement field.
+
+Pure functions; points are (N, 2) arrays of metres, arrays are indexed ``[row, col]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid
+from mapserver.maps import UNKNOWN, OccupancyMap
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class DriftField:
+    """Shifts (nav2 metres) to add after ``nav2_from_slam``, on a lattice in the slam frame.
+
+    ``shifts`` has shape (rows, cols, 2); node (i, j) sits at slam ``(x0 + j * spacing,
+    y0 + i * spacing)``.
+    """
+
+    x0: float
+    y0: float
+    spacing: float
+    shifts: NDArray[np.float32]
+
+    def at(self, xy_slam: FloatArray) -> FloatArray:
+        """Bilinearly interpolated shifts at slam points (N, 2) -> (N, 2)."""
+        rows, cols = self.shifts.shape[:2]
+        u = np.clip((xy_slam[:, 0] - self.x0) / self.spacing, 0.0, cols - 1.0)
+        v = np.clip((xy_slam[:, 1] - self.y0) / self.spacing, 0.0, rows - 1.0)
+        j0 = np.minimum(np.floor(u).astype(np.int64), cols - 2)
+        i0 = np.minimum(np.floor(v).astype(np.int64), rows - 2)
+        fu, fv = (u - j0)[:, None], (v - i0)[:, None]
+        s = self.shifts.astype(np.float64)
+        top = s[i0, j0] * (1 - fu) + s[i0, j0 + 1] * fu
+        bottom = s[i0 + 1, j0] * (1 - fu) + s[i0 + 1, j0 + 1] * fu
+        return np.asarray(top * (1 - fv) + bottom * fv)
+
+    def max_shift_m(self) -> float:
+        return float(np.sqrt((self.shifts**2).sum(axis=2)).max()) if self.shifts.size else 0.0
+
+
+def _fill_missing(values: NDArray[np.float32], valid: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Fill nodes without an estimate from their valid neighbours (normalised blur, repeated)."""
+    out = values.copy()
+    weight = valid.astype(np.float32)
+    known = valid.copy()
+    for _ in range(max(values.shape[:2])):
+        if known.all():
+            break
+        w = cv2.blur(weight, (3, 3), borderType=cv2.BORDER_CONSTANT)
+        grown = (w > 0) & ~known
+        for k in range(2):
+            s = cv2.blur(out[:, :, k] * weight, (3, 3), borderType=cv2.BORDER_CONSTANT)
+            out[:, :, k] = np.where(grown, s / np.maximum(w, 1e-6), out[:, :, k])
+        weight = np.where(grown, 1.0, weight).astype(np.float32)
+        known |= grown
+    return out
+
+
+def estimate_drift(
+    walls_slam: FloatArray,
+    nav2_from_slam: Transform2D,
+    grid: Grid,
+    nearest_colrow: FloatArray,
+    *,
+    tile_m: float = 6.0,
+    max_shift_m: float = 0.4,
+    min_points: int = 40,
+    iterations: int = 12,
+) -> DriftField:
+    """Per-node translation (nav2 metres) that lays nearby local walls onto global walls.
+
+    Each node uses the walls within a square of side ``tile_m`` around it; nodes with fewer than
+    ``min_points`` walls, or whose walls barely match, borrow from their neighbours. The shifts
+    are median-filtered (an odd node is an outlier, not drift) and clipped to ``max_shift_m``.
+    ``nearest_colrow`` is the (H, W, 2) field of the nearest global wall's (col, row) on
+    ``grid``.
+    """
+    spacing = tile_m / 2.0
+    lo = walls_slam.min(axis=0) - spacing
+    hi = walls_slam.max(axis=0) + spacing
+    cols = max(2, math.ceil((hi[0] - lo[0]) / spacing) + 1)
+    rows = max(2, math.ceil((hi[1] - lo[1]) / spacing) + 1)
+    shifts = np.zeros((rows, cols, 2), np.float32)
+    valid = np.zeros((rows, cols), bool)
+    base = nav2_from_slam.apply(walls_slam)
+    h, w = nearest_colrow.shape[:2]
+    node_i = np.floor((walls_slam[:, 1] - lo[1]) / spacing + 0.5).astype(int)
+    node_j = np.floor((walls_slam[:, 0] - lo[0]) / spacing + 0.5).astype(int)
+    for i in range(rows):
+        for j in range(cols):
+            sel = (np.abs(node_i - i) <= 1) & (np.abs(node_j - j) <= 1)
+            if sel.sum() < min_points:
+                continue
+            q0 = base[sel]
+            shift = np.zeros(2)
+            used = 0
+            for k in range(iterations):
+                limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
+                q = q0 + shift
+                px = np.rint(grid.to_pixel(q)).astype(np.int64)
+                inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+                target = np.zeros_like(q)
+                target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
+                r = target - q
+                d = np.sqrt((r**2).sum(axis=1))
+                use = inside & (d <= limit)
+                used = int(use.sum())
+                if used < min_points // 2:
+                    break
+                shift = shift + r[use].mean(axis=0)
+                if np.hypot(*shift) > max_shift_m:
+                    shift *= max_shift_m / np.hypot(*shift)
+            if used >= min_points // 2:
+                shifts[i, j] = shift
+                valid[i, j] = True
+    if not valid.any():
+        return DriftField(
+            float(lo[0]), float(lo[1]), spacing, np.zeros((rows, cols, 2), np.float32)
+        )
+    shifts = _fill_missing(shifts, valid)
+    for k in range(2):
+        shifts[:, :, k] = cv2.medianBlur(np.ascontiguousarray(shifts[:, :, k]), 3)
+    return DriftField(float(lo[0]), float(lo[1]), spacing, shifts)
+
+
+def warp_local(
+    local: OccupancyMap,
+    grid: Grid,
+    nav2_from_slam: Transform2D,
+    drift: DriftField | None = None,
+) -> NDArray[np.uint8]:
+    """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
+
+    For a grid cell at nav2 point ``x`` the source is ``T^-1(x - shift(T^-1 x))``: the shift is
+    small and smooth, so evaluating it at the rigid pre-image is exact enough.
+    """
+    cols, rows = np.meshgrid(
+        np.arange(grid.width, dtype=np.float32), np.arange(grid.height, dtype=np.float32)
+    )
+    to_slam = nav2_from_slam.inverse()
+    world = grid.world_from_pixel()
+    m = to_slam.matrix() @ world
+    sx = m[0, 0] * cols + m[0, 1] * rows + m[0, 2]
+    sy = m[1, 0] * cols + m[1, 1] * rows + m[1, 2]
+    if drift is not None:
+        shape = sx.shape
+        d = drift.at(np.stack([sx.ravel(), sy.ravel()], axis=1))
+        c, s = math.cos(nav2_from_slam.theta), math.sin(nav2_from_slam.theta)
+        # The shift is in nav2; bring it into the slam frame and move the source back by it.
+        dsx = (c * d[:, 0] + s * d[:, 1]).reshape(shape)
+        dsy = (-s * d[:, 0] + c * d[:, 1]).reshape(shape)
+        sx = sx - dsx
+        sy = sy - dsy
+    lgrid = Grid.of_map(local)
+    u = ((sx - lgrid.x0) / lgrid.resolution - 0.5).astype(np.float32)
+    v = (lgrid.height - (sy - lgrid.y0) / lgrid.resolution - 0.5).astype(np.float32)
+    return cv2.remap(
+        local.state, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=UNKNOWN
+    )
