@@ -20,8 +20,8 @@ import numpy as np
 
 from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
-from mapserver import diff as diff_stage
 from mapserver import deform, render, roi
+from mapserver import diff as diff_stage
 from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id
 from mapserver.config import Config
 from mapserver.errors import BundleError, BundleIncomplete, MapserverError, ProcessingError
