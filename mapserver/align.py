@@ -72,7 +72,7 @@ def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
         unknown_level = int(np.argmax(counts))
     else:
         unknown_level = 127
-    level = unknown_level + 0.3 * (255 - unknown_level)
+    level = unknown_level + 0.2 * (255 - unknown_level)
     return (m.state == OCCUPIED) | (occ >= level)
 
 
@@ -347,7 +347,7 @@ def align(
     refine: bool = True,
     search_xy_m: float = 2.5,
     search_theta_rad: float = math.radians(35.0),
-    min_score: float = 0.45,
+    min_score: float = 0.55,
     min_gain: float = 0.02,
     tolerance_m: float = 0.1,
     candidates: int = 6,

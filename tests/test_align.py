@@ -1,0 +1,123 @@
+"""Alignment recovers a planted transform from a disturbed prior, and says when it cannot."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from worlds import colonnade, cut_local, office, offset
+
+from mapserver.align import align, make_view, structure_mask
+from mapserver.geometry import Transform2D, wrap_angle
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+
+TRUE = Transform2D(0.7, 5.0, -3.0)
+CENTRE = (12.0, 6.0)
+
+
+def _errors(
+    found: Transform2D, truth: Transform2D, at_nav2: tuple[float, float]
+) -> tuple[float, float]:
+    p = truth.inverse().apply(np.array(at_nav2))
+    d = float(np.linalg.norm(found.apply(p) - truth.apply(p)))
+    return d, abs(math.degrees(wrap_angle(found.theta - truth.theta)))
+
+
+def _run(world: OccupancyMap, local: OccupancyMap, prior: Transform2D, **kw: float):
+    view = make_view(world, local, prior, search_xy_m=2.5)
+    return align(local, view, prior, **kw)
+
+
+@pytest.mark.parametrize(
+    ("dx", "dy", "dtheta_deg"),
+    [(0.0, 0.0, 0.0), (0.4, -0.3, 4.0), (-0.5, 0.2, -5.0), (1.6, -1.2, 25.0)],
+)
+def test_recovers_planted_transform(dx: float, dy: float, dtheta_deg: float) -> None:
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, dx, dy, dtheta_deg, CENTRE)
+    result = _run(world, cut.local, prior)
+    d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
+    assert result.trusted
+    assert d < 0.03, f"position error {d:.3f} m"
+    assert a < 0.3, f"angle error {a:.2f} deg"
+    assert result.score > 0.9
+    if dx or dy or dtheta_deg:
+        assert result.refined and result.method.startswith("pose+")
+        assert result.score > result.prior_score
+
+
+@pytest.mark.parametrize(("global_res", "local_res"), [(0.1, 0.05), (0.02, 0.05), (0.05, 0.03)])
+def test_different_resolutions(global_res: float, local_res: float) -> None:
+    world = office(seed=5, resolution=global_res)
+    cut = cut_local(
+        world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE, resolution=local_res
+    )
+    prior = offset(TRUE, 0.3, 0.3, 3.0, CENTRE)
+    result = _run(world, cut.local, prior)
+    d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
+    assert d < max(0.04, global_res / 2), f"position error {d:.3f} m"
+    assert a < 0.4
+
+
+def test_repeated_columns_do_not_pull_away_from_a_good_prior() -> None:
+    """Rows of identical columns 4 m apart: a prior 0.6 m off must not lock onto the next column."""
+    world = colonnade(spacing_m=4.0)
+    truth = Transform2D(-0.3, 20.0, 8.0)
+    centre = (30.0, 16.0)
+    cut = cut_local(world, centre_xy=centre, radius_m=6.0, nav2_from_slam=truth)
+    prior = offset(truth, 0.6, -0.4, 3.0, centre)
+    result = _run(world, cut.local, prior)
+    d, _ = _errors(result.nav2_from_slam, truth, centre)
+    assert d < 0.05
+
+
+def test_mislocalised_beyond_search_is_reported_not_trusted() -> None:
+    """A prior far outside the search window: low score, a warning, and no trust."""
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, 6.0, 5.0, 90.0, CENTRE)
+    result = _run(world, cut.local, prior)
+    assert not result.trusted
+    assert result.score < 0.55
+    assert any("could not align" in w for w in result.warnings)
+
+
+def test_refine_off_keeps_the_prior() -> None:
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, 0.2, 0.0, 1.0, CENTRE)
+    result = _run(world, cut.local, prior, refine=False)
+    assert result.nav2_from_slam == prior
+    assert result.method == "pose" and not result.refined
+
+
+def test_grey_antialiased_walls_still_align() -> None:
+    """A drawing whose walls are grey anti-aliased lines (unknown by the trinary rule)."""
+    world = office(seed=7)
+    grey = np.where(world.state == OCCUPIED, 150, np.where(world.state == FREE, 254, 205)).astype(
+        np.uint8
+    )
+    grey = cv2.GaussianBlur(grey, (3, 3), 0)
+    p = (255 - grey.astype(float)) / 255
+    state = np.full(grey.shape, UNKNOWN, np.uint8)
+    state[p > 0.65] = OCCUPIED
+    state[p < 0.196] = FREE
+    drawn = OccupancyMap(state, (p * 255).astype(np.uint8), world.resolution, world.origin)
+    assert (drawn.state == OCCUPIED).sum() < 0.01 * (world.state == OCCUPIED).sum()
+    assert structure_mask(drawn).sum() > 0.5 * (world.state == OCCUPIED).sum()
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, 0.4, -0.3, 4.0, CENTRE)
+    result = _run(drawn, cut.local, prior)
+    d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
+    assert result.trusted and d < 0.05 and a < 0.5
+
+
+def test_inputs_are_not_modified() -> None:
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=6.0, nav2_from_slam=TRUE)
+    before_g, before_l = world.state.copy(), cut.local.state.copy()
+    _run(world, cut.local, offset(TRUE, 0.3, 0.0, 2.0, CENTRE))
+    assert np.array_equal(world.state, before_g) and np.array_equal(cut.local.state, before_l)

@@ -1,0 +1,132 @@
+"""Small worlds with a known truth for the image-processing tests.
+
+A world is a global map drawn with OpenCV (walls, rooms, pillars). A local map is cut out of a
+(possibly changed) copy of it and expressed in a slam frame related to nav2 by a known transform,
+so that every test knows the exact answer it must recover.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid, resample
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
+
+
+def office(
+    *, width_m: float = 30.0, height_m: float = 20.0, resolution: float = 0.05, seed: int = 0
+) -> OccupancyMap:
+    """An office floor: outer walls, a corridor, irregular rooms with doors, a few pillars.
+
+    Origin (-2, -3); unknown outside the building.
+    """
+    rng = np.random.default_rng(seed)
+    w, h = round(width_m / resolution), round(height_m / resolution)
+    state = np.full((h, w), UNKNOWN, np.uint8)
+    px = lambda m: round(m / resolution)  # noqa: E731
+    cv2.rectangle(state, (px(1), px(1)), (w - px(1), h - px(1)), FREE, -1)
+    t = max(2, px(0.15))
+    cv2.rectangle(state, (px(1), px(1)), (w - px(1), h - px(1)), OCCUPIED, t)
+    # A corridor wall along the middle with doors, and room walls of varied spacing.
+    y_mid = h // 2
+    cv2.line(state, (px(1), y_mid), (w - px(1), y_mid), OCCUPIED, t)
+    x = px(1)
+    while x < w - px(5):
+        x += px(rng.uniform(3.5, 6.5))
+        cv2.line(state, (x, px(1)), (x, h - px(1)), OCCUPIED, t)
+        for y0 in (y_mid - px(1.6), y_mid + px(0.6)):  # doors next to the corridor
+            cv2.rectangle(state, (x - t, y0), (x + t, y0 + px(1.0)), FREE, -1)
+    for _ in range(6):  # doors in the corridor wall
+        dx = px(rng.uniform(2, width_m - 3))
+        cv2.rectangle(state, (dx, y_mid - t), (dx + px(1.0), y_mid + t), FREE, -1)
+    for _ in range(5):  # pillars and furniture
+        cx, cy = px(rng.uniform(3, width_m - 3)), px(rng.uniform(3, height_m - 3))
+        s = px(rng.uniform(0.3, 0.6))
+        cv2.rectangle(state, (cx, cy), (cx + s, cy + s), OCCUPIED, -1)
+    return from_states(state, resolution, (-2.0, -3.0, 0.0))
+
+
+def colonnade(*, resolution: float = 0.05, spacing_m: float = 4.0) -> OccupancyMap:
+    """An airport-like hall: walls around, and rows of identical columns on a regular grid."""
+    width_m, height_m = 60.0, 30.0
+    w, h = round(width_m / resolution), round(height_m / resolution)
+    state = np.full((h, w), FREE, np.uint8)
+    px = lambda m: round(m / resolution)  # noqa: E731
+    cv2.rectangle(state, (0, 0), (w - 1, h - 1), OCCUPIED, px(0.2))
+    s = px(0.5)
+    for cx in np.arange(4.0, width_m - 3.0, spacing_m):
+        for cy in np.arange(4.0, height_m - 3.0, spacing_m):
+            cv2.rectangle(state, (px(cx), px(cy)), (px(cx) + s, px(cy) + s), OCCUPIED, -1)
+    # One irregular feature so that the hall is not perfectly periodic.
+    cv2.rectangle(state, (px(20), px(1)), (px(27), px(2.2)), OCCUPIED, -1)
+    return from_states(state, resolution, (0.0, 0.0, 0.0))
+
+
+@dataclass(frozen=True)
+class Cut:
+    """A local map cut from a world, with the truth."""
+
+    local: OccupancyMap
+    nav2_from_slam: Transform2D
+
+
+def cut_local(
+    world: OccupancyMap,
+    *,
+    centre_xy: tuple[float, float],
+    radius_m: float,
+    nav2_from_slam: Transform2D,
+    resolution: float | None = None,
+) -> Cut:
+    """What a robot at ``centre_xy`` (nav2) knows: the world within ``radius_m``, in a slam frame.
+
+    Walls' far sides are left unknown (a lidar sees only the faces), so that the local map looks
+    like a SLAM map, not like a crop of the global one.
+    """
+    resolution = resolution or world.resolution
+    to_slam = nav2_from_slam.inverse()
+    c = to_slam.apply(np.array(centre_xy))
+    grid = Grid.covering(
+        c[0] - radius_m, c[1] - radius_m, c[0] + radius_m, c[1] + radius_m, resolution
+    )
+    state = resample(world.state, Grid.of_map(world), grid, to_slam)
+    xy = grid.to_world(
+        np.stack(np.meshgrid(np.arange(grid.width), np.arange(grid.height)), axis=-1).reshape(-1, 2)
+    )
+    far = (np.hypot(xy[:, 0] - c[0], xy[:, 1] - c[1]) > radius_m).reshape(grid.shape)
+    state[far] = UNKNOWN
+    # Keep only occupied cells that touch free space (the faces a lidar sees).
+    occ = (state == OCCUPIED).astype(np.uint8)
+    free = (state == FREE).astype(np.uint8)
+    face = cv2.dilate(free, np.ones((3, 3), np.uint8)) > 0
+    state[(occ > 0) & ~face] = UNKNOWN
+    local = from_states(state, grid.resolution, (grid.x0, grid.y0, 0.0))
+    return Cut(local, nav2_from_slam)
+
+
+def changed(
+    world: OccupancyMap, edits: list[tuple[str, float, float, float, float]]
+) -> OccupancyMap:
+    """A copy of ``world`` with boxes set to occupied (``"add"``) or free (``"clear"``):
+    ``(op, min_x, min_y, max_x, max_y)`` in metres."""
+    state = world.state.copy()
+    grid = Grid.of_map(world)
+    for op, x0, y0, x1, y1 in edits:
+        (c0, r1), (c1, r0) = np.rint(grid.to_pixel([[x0, y0], [x1, y1]])).astype(int)
+        state[r0 : r1 + 1, c0 : c1 + 1] = OCCUPIED if op == "add" else FREE
+    return from_states(state, world.resolution, world.origin)
+
+
+def offset(
+    t: Transform2D, dx: float, dy: float, dtheta_deg: float, about: tuple[float, float]
+) -> Transform2D:
+    """``t`` disturbed by a rotation about the nav2 point ``about`` and a translation."""
+    a = np.array(about)
+    d = math.radians(dtheta_deg)
+    rot = Transform2D(d, *(a - Transform2D(d, 0.0, 0.0).apply(a)))
+    return Transform2D(0.0, dx, dy).compose(rot).compose(t)
