@@ -1,0 +1,137 @@
+"""Differences between aligned maps: trinary rules, wall tolerance, noise, clustering."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from worlds import cut_local, office
+
+from mapserver.cluster import cluster_mask, sort_by_area
+from mapserver.deform import warp_local
+from mapserver.diff import DiffMasks, drop_small, filter_noise, raw_differences
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN
+
+RES = 0.05
+
+
+def _maps(shape: tuple[int, int] = (100, 100)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    g = np.full(shape, FREE, np.uint8)
+    g[:, 48:51] = OCCUPIED  # a wall 3 px thick
+    loc = g.copy()
+    roi = np.ones(shape, bool)
+    return g, loc, roi
+
+
+def test_identical_maps_have_no_difference() -> None:
+    g, loc, roi = _maps()
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert not d.added.any() and not d.removed.any()
+
+
+@pytest.mark.parametrize("shift_px", [1, 2])
+def test_wall_seen_one_or_two_pixels_off_is_not_a_change(shift_px: int) -> None:
+    g, loc, roi = _maps()
+    loc = np.full(g.shape, FREE, np.uint8)
+    loc[:, 48 + shift_px : 51 + shift_px] = OCCUPIED
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert not d.added.any() and not d.removed.any()
+
+
+def test_added_and_removed_are_found_where_planted() -> None:
+    g, loc, roi = _maps()
+    g[20:30, 70:80] = OCCUPIED  # a shelf in the global map, gone in the local one
+    loc[60:66, 10:20] = OCCUPIED  # a new box
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, removed_tolerance_m=0.25)
+    rows, cols = np.nonzero(d.added)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (60, 65, 10, 19)
+    rows, cols = np.nonzero(d.removed)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (20, 29, 70, 79)
+
+
+def test_unknown_on_either_side_is_never_a_difference() -> None:
+    g, loc, roi = _maps()
+    g[0:40, :] = UNKNOWN
+    loc[0:40, 60:90] = OCCUPIED  # walls seen where the global map knows nothing
+    loc[60:100, :] = UNKNOWN
+    g[70:80, 70:80] = OCCUPIED  # a global obstacle the robot never saw
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert not d.added.any() and not d.removed.any()
+
+
+def test_roi_limits_the_comparison() -> None:
+    g, loc, roi = _maps()
+    loc[60:66, 10:20] = OCCUPIED
+    roi[:, :30] = False
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert not d.added.any()
+
+
+def test_inputs_are_not_modified() -> None:
+    g, loc, roi = _maps()
+    loc[60:66, 10:20] = OCCUPIED
+    copies = (g.copy(), loc.copy(), roi.copy())
+    masks = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    filter_noise(masks, min_pixels=5)
+    assert all(np.array_equal(a, b) for a, b in zip((g, loc, roi), copies, strict=True))
+
+
+def test_noise_filter_drops_specks_and_keeps_thin_lines() -> None:
+    mask = np.zeros((50, 50), bool)
+    mask[5, 5] = mask[5, 6] = True  # a speck
+    mask[20, 10:30] = True  # one-pixel line: an obstacle seen from one side
+    out = drop_small(mask, min_pixels=5)
+    assert not out[5, 5] and out[20, 10:30].all()
+    d = filter_noise(DiffMasks(mask, mask), min_pixels=5)
+    assert d.added.sum() == 20 and d.removed.sum() == 20
+
+
+def test_cluster_reports_metres_in_the_grid_frame() -> None:
+    grid = Grid(10.0, -5.0, 0.05, 100, 100)
+    mask = np.zeros(grid.shape, bool)
+    mask[10:20, 20:40] = True  # 0.5 m x 1.0 m block
+    mask[70:74, 70:74] = True  # 0.2 m x 0.2 m block
+    found = sort_by_area(
+        cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=3, min_area_m2=0.01)
+    )
+    assert [d.pixels for d in found] == [200, 16]
+    big = found[0]
+    assert big.area_m2 == pytest.approx(0.5, abs=1e-9)
+    # Columns 20..39 -> x from 10 + 20 * 0.05 = 11.0 to 12.0. The grid's top edge is at
+    # y = -5 + 100 * 0.05 = 0, so rows 10..19 span y from -0.5 down to -1.0.
+    assert big.bbox == pytest.approx((11.0, -1.0, 12.0, -0.5))
+    assert big.centroid == pytest.approx((11.5, -0.75))
+
+
+def test_cluster_merges_fragments_closer_than_eps() -> None:
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    mask = np.zeros(grid.shape, bool)
+    mask[10:14, 10:14] = True
+    mask[10:14, 17:21] = True  # 3 px = 0.15 m gap
+    mask[60:64, 60:64] = True
+    found = cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3)
+    assert len(found) == 2
+
+
+def test_warp_with_drift_moves_walls_by_the_shift() -> None:
+    from mapserver.deform import DriftField
+
+    world = office(seed=2)
+    t = Transform2D(0.3, 1.0, 2.0)
+    cut = cut_local(world, centre_xy=(10.0, 5.0), radius_m=6.0, nav2_from_slam=t)
+    grid = Grid.covering(3.0, -2.0, 17.0, 12.0, 0.05)
+    shift = np.zeros((4, 4, 2), np.float32)
+    shift[..., 0] = 0.25  # 5 px to the right in nav2, everywhere
+    field = DriftField(-50.0, -50.0, 40.0, shift)
+    plain = warp_local(cut.local, grid, t)
+    moved = warp_local(cut.local, grid, t, field)
+    occ_plain = plain == OCCUPIED
+    occ_moved = moved == OCCUPIED
+    assert abs(int(occ_plain.sum()) - int(occ_moved.sum())) < 0.05 * occ_plain.sum()
+    cols_plain = np.nonzero(occ_plain)[1].mean()
+    cols_moved = np.nonzero(occ_moved)[1].mean()
+    assert cols_moved - cols_plain == pytest.approx(5.0, abs=0.5)
+    assert math.isclose(field.max_shift_m(), 0.25, rel_tol=1e-6)
