@@ -44,8 +44,9 @@ class GlobalView:
 class Alignment:
     """The result of aligning: ``nav2_from_slam`` and how far it can be trusted.
 
-    ``score`` (0..1) is the share of the local map's occupied cells that lie on a wall of the
-    global map; ``prior_score`` is the same for the pose prior. ``trusted`` is false when even the
+    ``score`` (0..1) is the geometric mean of two shares: the local map's walls that lie on a
+    global wall, and the global walls (inside what the robot saw) that the local map does not
+    see through; ``prior_score`` is the same for the pose prior. ``trusted`` is false when even the
     best transform agrees too little to compare the maps.
     """
 
@@ -173,6 +174,34 @@ def agreement(
         return 0.0
     d = _lookup(distance_px, grid, nav2_from_slam.apply(points_slam), fill=1e6)
     return float(np.mean(d * grid.resolution <= tolerance_m))
+
+
+def consistency(
+    local: OccupancyMap,
+    nav2_from_slam: Transform2D,
+    view: GlobalView,
+    *,
+    tolerance_m: float,
+) -> float:
+    """Share of the global walls inside the local map's known area that the local map does not
+    contradict (sees free, with no local wall within ``tolerance_m``).
+
+    The counterpart of :func:`agreement`: a wrong alignment in a building of right angles can
+    put many local walls on global walls, but it also runs global walls through space the robot
+    saw empty.
+    """
+    local_state = resample(local.state, Grid.of_map(local), view.grid, nav2_from_slam)
+    walls = view.structure & (local_state != UNKNOWN)
+    n = int(walls.sum())
+    if n == 0:
+        return 0.0
+    seen_free = walls & (local_state == FREE)
+    if seen_free.any():
+        local_walls = (local_state == OCCUPIED).astype(np.uint8)
+        if local_walls.any():
+            d = cv2.distanceTransform(1 - local_walls, cv2.DIST_L2, 5)
+            seen_free &= d * view.grid.resolution > tolerance_m
+    return 1.0 - float(seen_free.sum()) / n
 
 
 # --- correlative search ----------------------------------------------------------------------
@@ -347,8 +376,9 @@ def align(
     refine: bool = True,
     search_xy_m: float = 2.5,
     search_theta_rad: float = math.radians(35.0),
-    min_score: float = 0.55,
+    min_score: float = 0.6,
     min_gain: float = 0.02,
+    jump_m: float = 0.5,
     tolerance_m: float = 0.1,
     candidates: int = 6,
 ) -> Alignment:
@@ -359,27 +389,38 @@ def align(
     2. The best few rotation candidates, and the prior itself, descend a pyramid to the work
        resolution, and an ICP polish finishes each.
     3. Every candidate is scored on the same cells (:func:`agreement`); among those within a
-       whisker of the best, the one nearest the prior wins (repeated structure), and it
-       replaces the prior only when it scores at least ``min_gain`` more.
+       whisker of the best, the one nearest the prior wins (repeated structure). It replaces
+       the prior when it scores better; when it lies more than ``jump_m`` away from the prior
+       (a distinct solution, not a polish of the prior) it must score ``min_gain`` more.
 
     A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
     """
     walls = known_points(local, state=OCCUPIED)
     warnings: list[str] = []
     dist_px = _distance_field(view.structure)
-    prior_score = agreement(walls, prior, view.grid, dist_px, tolerance_m=tolerance_m)
-    if len(walls) < 20 or not view.structure.any():
-        warnings.append("too few walls in the local or global map to check the alignment")
-        return Alignment(
-            prior, prior, "pose", False, prior_score, prior_score, False, tuple(warnings)
-        )
-    if not refine:
-        trusted = prior_score >= min_score
-        if not trusted:
+
+    def score(t: Transform2D) -> float:
+        # Geometric mean of: local walls on global walls, and global walls not seen through.
+        p = agreement(walls, t, view.grid, dist_px, tolerance_m=tolerance_m)
+        q = consistency(local, t, view, tolerance_m=tolerance_m) if p > 0 else 0.0
+        return math.sqrt(p * q)
+
+    prior_score = score(prior)
+
+    def keep_prior(reason: str | None) -> Alignment:
+        trusted = reason is None and prior_score >= min_score
+        if reason:
+            warnings.append(reason)
+        elif not trusted:
             warnings.append(_untrusted(prior_score, min_score))
         return Alignment(
             prior, prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings)
         )
+
+    if len(walls) < 20 or not view.structure.any():
+        return keep_prior("too few walls in the local or global map to check the alignment")
+    if not refine:
+        return keep_prior(None)
 
     centre = walls.mean(axis=0)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
@@ -414,22 +455,40 @@ def align(
             theta, target = best[1], np.array(best[2:])
         candidate = _to_transform(theta, centre, target)
         candidate = icp(
-            walls, candidate, view.grid, nearest, max_distance_m=max(0.3, 4 * view.grid.resolution)
+            walls,
+            candidate,
+            view.grid,
+            nearest,
+            max_distance_m=max(0.3, 4 * view.grid.resolution),
         )
-        score = agreement(walls, candidate, view.grid, dist_px, tolerance_m=tolerance_m)
-        results.append((score, candidate))
+        results.append((score(candidate), candidate))
 
-    best_score = max(s for s, _ in results)
-    near_best = [(s, t) for s, t in results if s >= best_score - 0.02]
-    score, chosen = min(near_best, key=lambda st: _distance(st[1], prior, centre, radius))
-    refined = score >= prior_score + min_gain
-    if not refined:
-        chosen, score = prior, prior_score
-    trusted = score >= min_score
+    chosen_score, chosen = max(results, key=lambda st: st[0])
+    for s, t in results:
+        # Repeated structure: a distinct solution that scores about as well but lies nearer the
+        # prior is the one to believe. Within one basin, the best score wins.
+        distinct = _distance(t, chosen, centre, radius) > 0.5
+        nearer = _distance(t, prior, centre, radius) < _distance(chosen, prior, centre, radius)
+        if distinct and nearer and s >= chosen_score - 0.02:
+            chosen_score, chosen = s, t
+    # A polish within the prior's own basin only has to score better; a jump to a distinct
+    # solution (another column, another doorway) has to win clearly.
+    jump = _distance(chosen, prior, centre, radius) > jump_m
+    if chosen_score < prior_score + (min_gain if jump else 1e-6):
+        return keep_prior(None)
+    trusted = chosen_score >= min_score
     if not trusted:
-        warnings.append(_untrusted(score, min_score))
-    method = "pose+correlative+icp" if refined else "pose"
-    return Alignment(chosen, prior, method, refined, score, prior_score, trusted, tuple(warnings))
+        warnings.append(_untrusted(chosen_score, min_score))
+    return Alignment(
+        chosen,
+        prior,
+        "pose+correlative+icp",
+        True,
+        chosen_score,
+        prior_score,
+        trusted,
+        tuple(warnings),
+    )
 
 
 def _untrusted(score: float, min_score: float) -> str:
@@ -440,11 +499,11 @@ def _untrusted(score: float, min_score: float) -> str:
 
 
 __all__ = [
-    "FREE",
     "Alignment",
     "GlobalView",
     "agreement",
     "align",
+    "consistency",
     "footprint",
     "icp",
     "known_points",

@@ -33,10 +33,12 @@ class AlignConfig(_Frozen):
     """Half-width of the translation search window around the prior."""
     search_theta_deg: float = Field(35.0, gt=0, le=180)
     """Half-width of the rotation search window around the prior."""
-    min_score: float = Field(0.55, ge=0, le=1)
+    min_score: float = Field(0.6, ge=0, le=1)
     """Below this agreement the alignment is not trusted: a warning, and no differences reported."""
     min_gain: float = Field(0.02, ge=0)
-    """The refinement replaces the prior only when it scores at least this much better."""
+    """A refinement that moves the map more than ``jump_m`` from the prior (a distinct solution,
+    not a polish) replaces the prior only when it scores at least this much better."""
+    jump_m: float = Field(0.5, gt=0)
     deform: bool = True
     """Correct SLAM drift with small per-tile shifts after the rigid alignment."""
     deform_tile_m: float = Field(6.0, gt=0)

@@ -196,6 +196,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             search_theta_rad=math.radians(settings.align.search_theta_deg),
             min_score=settings.align.min_score,
             min_gain=settings.align.min_gain,
+            jump_m=settings.align.jump_m,
         )
         return view, result
 

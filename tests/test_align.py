@@ -81,7 +81,7 @@ def test_mislocalised_beyond_search_is_reported_not_trusted() -> None:
     prior = offset(TRUE, 6.0, 5.0, 90.0, CENTRE)
     result = _run(world, cut.local, prior)
     assert not result.trusted
-    assert result.score < 0.55
+    assert result.score < 0.6
     assert any("could not align" in w for w in result.warnings)
 
 

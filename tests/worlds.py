@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
+from mapserver.bundle import sha256_file
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states, save_map
 
 
 def office(
@@ -130,3 +133,45 @@ def offset(
     d = math.radians(dtheta_deg)
     rot = Transform2D(d, *(a - Transform2D(d, 0.0, 0.0).apply(a)))
     return Transform2D(0.0, dx, dy).compose(rot).compose(t)
+
+
+def write_bundle(
+    directory: Path,
+    world: OccupancyMap,
+    cut: Cut,
+    *,
+    prior: Transform2D | None = None,
+    slam_pose: tuple[float, float, float] = (0.5, 0.2, 0.1),
+    trajectory: bool = True,
+    checksums: bool = True,
+) -> Path:
+    """Write a bundle directory (maps as map_saver writes them, bundle.yaml) for ``cut``.
+
+    The nav2 pose in the manifest is the slam pose mapped through ``prior`` (default: the truth).
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    save_map(directory / "slam_map.yaml", cut.local.state, cut.local.resolution, cut.local.origin)
+    save_map(directory / "nav2_map.yaml", world.state, world.resolution, world.origin)
+    prior = prior or cut.nav2_from_slam
+    sx, sy, syaw = slam_pose
+    nx, ny = prior.apply(np.array([sx, sy]))
+    manifest: dict[str, object] = {
+        "format": 1,
+        "robot": "test-01",
+        "stamp": "2026-11-21T10:15:00Z",
+        "slam_map": "slam_map.yaml",
+        "nav2_map": "nav2_map.yaml",
+        "pose": {
+            "nav2": {"x": float(nx), "y": float(ny), "yaw": syaw + prior.theta},
+            "slam": {"x": sx, "y": sy, "yaw": syaw},
+        },
+    }
+    if trajectory:
+        manifest["trajectory"] = [
+            {"x": float(x), "y": float(y), "yaw": 0.0} for x, y in np.linspace([0, 0], [sx, sy], 5)
+        ]
+    if checksums:
+        names = ["slam_map.yaml", "slam_map.pgm", "nav2_map.yaml", "nav2_map.pgm"]
+        manifest["checksums"] = {n: sha256_file(directory / n) for n in names}
+    (directory / "bundle.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return directory

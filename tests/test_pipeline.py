@@ -1,0 +1,178 @@
+"""The whole pipeline on bundles written to disk, and ``mapserver process`` on them."""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from worlds import changed, cut_local, office, offset, write_bundle
+
+from mapserver.config import Config, PipelineConfig, RoiConfig
+from mapserver.errors import BundleError, MapFileError
+from mapserver.geometry import Transform2D
+from mapserver.pipeline import process_bundle
+
+TRUE = Transform2D(-0.9, 3.0, 8.0)
+CENTRE = (12.0, 6.0)
+ADDED_BOX = (13.0, 4.0, 13.6, 4.5)  # metres, nav2
+
+
+def _hash_tree(path: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(path.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def world():
+    return office(seed=11)
+
+
+@pytest.fixture
+def bundle(tmp_path: Path, world) -> Path:
+    now = changed(world, [("add", *ADDED_BOX)])
+    cut = cut_local(now, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, 0.3, -0.2, 2.5, CENTRE)
+    return write_bundle(tmp_path / "run-0042", world, cut, prior=prior)
+
+
+def test_result_follows_the_contract(bundle: Path) -> None:
+    before = _hash_tree(bundle)
+    outcome = process_bundle(bundle, Config())
+    r = outcome.result
+    assert _hash_tree(bundle) == before, "inputs must never be modified"
+    assert outcome.bundle_id == r["bundle"] == "run-0042"
+    assert r["format"] == 1 and r["status"] == "ok" and r["robot"] == "test-01"
+    assert r["map"]["image"] == "nav2_map.pgm" and r["map"]["resolution"] == 0.05
+    a = r["alignment"]
+    assert set(a) >= {"theta", "tx", "ty", "method", "refined", "score"}
+    assert a["refined"] is True and 0.0 <= a["score"] <= 1.0
+    assert a["theta"] == pytest.approx(TRUE.theta, abs=0.005)
+    assert r["roi"]["strategy"] == "observed" and len(r["roi"]["polygon"]) >= 3
+    assert set(r["timings_ms"]) >= {"load", "align", "diff", "cluster"}
+    # One added obstacle, where it was planted; nothing else.
+    assert [d["kind"] for d in r["differences"]] == ["added"]
+    d = r["differences"][0]
+    assert d["id"] == 1
+    assert d["centroid"]["x"] == pytest.approx(13.3, abs=0.35)
+    assert d["centroid"]["y"] == pytest.approx(4.25, abs=0.25)
+    b = d["bbox"]
+    assert b["min_x"] >= 12.8 and b["max_x"] <= 13.8 and b["min_y"] >= 3.8 and b["max_y"] <= 4.7
+    assert 0 < d["area_m2"] <= 0.6 * 0.5 + 0.05 and d["pixels"] > 5
+    yaml.safe_load(yaml.safe_dump(r))  # plain data only
+
+
+def test_images_cover_the_roi_and_are_legible(bundle: Path) -> None:
+    outcome = process_bundle(bundle, Config())
+    assert set(outcome.images) == {"overlay.png", "diff.png"}
+    over = cv2.imdecode(np.frombuffer(outcome.images["overlay.png"], np.uint8), cv2.IMREAD_COLOR)
+    diff = cv2.imdecode(np.frombuffer(outcome.images["diff.png"], np.uint8), cv2.IMREAD_COLOR)
+    assert over.shape == diff.shape
+    assert 700 <= max(over.shape[:2]) <= 2000
+    # Red (added) pixels are drawn: the box and its number.
+    red = (over[:, :, 2] > 200) & (over[:, :, 1] < 50) & (over[:, :, 0] < 50)
+    assert red.sum() > 100
+
+
+def test_removed_obstacle_is_found(tmp_path: Path, world) -> None:
+    # A pillar-sized block in the global map that is gone in the robot's map.
+    block = (10.0, 7.0, 10.6, 7.6)
+    before = changed(world, [("add", *block)])
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    path = write_bundle(tmp_path / "b1", before, cut)
+    r = process_bundle(path, Config()).result
+    removed = [d for d in r["differences"] if d["kind"] == "removed"]
+    assert len(removed) == 1
+    assert removed[0]["centroid"]["x"] == pytest.approx(10.3, abs=0.2)
+    assert removed[0]["centroid"]["y"] == pytest.approx(7.3, abs=0.2)
+
+
+def test_a_misaligned_bundle_reports_no_differences(tmp_path: Path, world) -> None:
+    now = changed(world, [("add", *ADDED_BOX)])
+    cut = cut_local(now, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    path = write_bundle(tmp_path / "lost", world, cut, prior=offset(TRUE, 7.0, -6.0, 120.0, CENTRE))
+    r = process_bundle(path, Config()).result
+    assert r["status"] == "ok"
+    assert r["differences"] == []
+    assert any("could not align" in w for w in r["warnings"])
+    assert r["alignment"]["score"] < 0.6
+
+
+@pytest.mark.parametrize("strategy", ["box", "trajectory", "heading"])
+def test_other_roi_strategies(bundle: Path, strategy: str) -> None:
+    config = Config(pipeline=PipelineConfig(roi=RoiConfig(strategy=strategy, box_size_m=30.0)))
+    r = process_bundle(bundle, config).result
+    assert r["roi"]["strategy"] == strategy
+    assert len(r["roi"]["polygon"]) >= 4
+
+
+def test_reference_map_is_used_when_the_bundle_names_none(tmp_path: Path, bundle: Path) -> None:
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    del manifest["nav2_map"]
+    manifest["checksums"] = {
+        k: v for k, v in manifest["checksums"].items() if not k.startswith("nav2")
+    }
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    for name in ("nav2_map.yaml", "nav2_map.pgm"):
+        (ref / name).write_bytes((bundle / name).read_bytes())
+        (bundle / name).unlink()
+    with pytest.raises(BundleError, match="no reference_map"):
+        process_bundle(bundle, Config())
+    r = process_bundle(bundle, Config(reference_map=ref / "nav2_map.yaml")).result
+    assert len(r["differences"]) == 1
+
+
+def test_broken_image_names_the_file(bundle: Path) -> None:
+    (bundle / "slam_map.pgm").write_text("this is not an image\n")
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    del manifest["checksums"]
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+    with pytest.raises(MapFileError) as info:
+        process_bundle(bundle, Config())
+    assert "slam_map.pgm" in info.value.reason and info.value.stage == "load"
+
+
+def _mapserver(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mapserver.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_cli_process_writes_results_and_leaves_inputs(tmp_path: Path, bundle: Path) -> None:
+    before = _hash_tree(bundle)
+    out = tmp_path / "out"
+    proc = _mapserver("process", "--outbox", str(out), str(bundle))
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (out / "run-0042").iterdir()) == [
+        "diff.png",
+        "overlay.png",
+        "result.yaml",
+    ]
+    assert "run-0042: 1 differences" in proc.stdout
+    assert _hash_tree(bundle) == before
+    assert [p.name for p in out.iterdir()] == ["run-0042"]
+
+
+def test_cli_process_broken_bundle_exits_1_with_one_line(tmp_path: Path, bundle: Path) -> None:
+    text = (bundle / "bundle.yaml").read_text().replace("slam: {", "slam: {x: .nan, ", 1)
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    manifest["pose"]["slam"]["x"] = float("nan")
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+    del text
+    out = tmp_path / "out"
+    proc = _mapserver("process", "--outbox", str(out), str(bundle))
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "bundle.yaml" in lines[0] and "pose.slam" in lines[0] and "finite" in lines[0]
+    assert not out.exists() or not any(out.iterdir()), "no partial output"
