@@ -3,13 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
+import math
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from datetime import datetime, timezone
 from pathlib import Path
 
+import yaml
+
 from mapserver.config import dump_config, load_config
-from mapserver.errors import MapserverError
+from mapserver.errors import MapFileError, MapserverError
 
 log = logging.getLogger("mapserver")
 
@@ -52,6 +64,320 @@ def _cmd_process(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+# -- mapserver run ---------------------------------------------------------------------------
+
+_PRIORITY = {"DEBUG": 7, "INFO": 6, "WARNING": 4, "ERROR": 3, "CRITICAL": 2}
+
+
+class _JournalFormatter(logging.Formatter):
+    """Prefixes ``<N>`` (the syslog priority) so that journald keeps each line's level."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"<{_PRIORITY.get(record.levelname, 6)}>{super().format(record)}"
+
+
+def _stdout_is_journal() -> bool:
+    stream = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        device, inode = (int(part) for part in stream.split(":"))
+        st = os.fstat(sys.stdout.fileno())
+    except (ValueError, OSError):
+        return False
+    return (st.st_dev, st.st_ino) == (device, inode)
+
+
+def _setup_daemon_logging(level: str) -> None:
+    """Plain lines on stdout (journald adds the time), with priorities when stdout is the journal.
+    Also called in each worker process."""
+    handler = logging.StreamHandler(sys.stdout)
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    handler.setFormatter(_JournalFormatter(fmt) if _stdout_is_journal() else logging.Formatter(fmt))
+    logging.basicConfig(level=getattr(logging, level), handlers=[handler], force=True)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from mapserver.service import Service
+
+    config = load_config(args.config)
+    _setup_daemon_logging(config.log_level)
+    setup = functools.partial(_setup_daemon_logging, config.log_level)
+    return Service(config, worker_setup=setup).run()
+
+
+# -- mapserver bundle (the robot side) -------------------------------------------------------
+
+
+def _pose_arg(text: str) -> dict[str, float]:
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected x,y,yaw (metres, metres, radians: three finite numbers), got {text!r}"
+        )
+    return {"x": values[0], "y": values[1], "yaw": values[2]}
+
+
+def _read_trajectory(path: Path) -> list[dict[str, float]]:
+    """Poses from a YAML/JSON list ({x, y, yaw} or [x, y, yaw]) or text lines ``x y yaw`` /
+    ``x,y,yaw`` (``#`` starts a comment)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise MapserverError(
+            f"cannot read the trajectory: {error}", file=path, stage="bundle"
+        ) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError:
+        data = None
+    if isinstance(data, dict) and "trajectory" in data:
+        data = data["trajectory"]
+    rows: list[object]
+    if isinstance(data, list):
+        rows = data
+    else:
+        rows = []
+        for line in text.splitlines():
+            line = line.split("#", 1)[0].replace(",", " ").strip()
+            if line:
+                rows.append(line.split())
+    poses = []
+    for number, row in enumerate(rows, start=1):
+        if isinstance(row, dict):
+            row = [row.get("x"), row.get("y"), row.get("yaw")]
+        try:
+            x, y, yaw = (float(v) for v in row)  # type: ignore[union-attr, arg-type]
+        except (TypeError, ValueError):
+            raise MapserverError(
+                f"pose {number}: expected x, y, yaw, got {row!r}", file=path, stage="bundle"
+            ) from None
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise MapserverError(f"pose {number}: not finite", file=path, stage="bundle")
+        poses.append({"x": x, "y": y, "yaw": yaw})
+    return poses
+
+
+def _copy_map(map_yaml: Path, out_dir: Path, stem: str) -> list[str]:
+    """Copy a map YAML and its image into ``out_dir`` as ``<stem>.yaml`` / ``<stem>.<ext>``."""
+    try:
+        data = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        raise MapFileError(f"cannot read the map YAML: {error}", file=map_yaml) from None
+    if not isinstance(data, dict) or not isinstance(data.get("image"), str):
+        raise MapFileError("map YAML has no 'image:' entry", file=map_yaml)
+    image = Path(data["image"])
+    image = image if image.is_absolute() else map_yaml.parent / image
+    if not image.is_file():
+        raise MapFileError(f"the image '{data['image']}' is not there", file=map_yaml)
+    image_name = stem + (image.suffix.lower() or ".pgm")
+    shutil.copyfile(image, out_dir / image_name)
+    data["image"] = image_name
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
+    (out_dir / f"{stem}.yaml").write_text(text, encoding="utf-8")
+    return [f"{stem}.yaml", image_name]
+
+
+def _utc_stamp() -> str:
+    return datetime.now(timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def _cmd_bundle(args: argparse.Namespace) -> int:
+    from mapserver.bundle import (
+        MANIFEST,
+        check_bundle_files,
+        is_valid_bundle_id,
+        parse_manifest,
+        sha256_file,
+    )
+
+    out_dir = Path(args.output)
+    bundle_id = out_dir.resolve().name
+    if not is_valid_bundle_id(bundle_id):
+        raise MapserverError(
+            f"the output directory's name is the bundle id, and {bundle_id!r} is not a valid one: "
+            "use 1 to 128 letters, digits, '.', '_' and '-', starting with a letter or digit",
+            stage="bundle",
+        )
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise MapserverError("the output directory exists and is not empty", file=out_dir)
+    robot = args.robot or (re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "robot")
+    stamp = args.stamp or _utc_stamp()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = _copy_map(args.slam_map, out_dir, "slam_map")
+    manifest: dict[str, object] = {
+        "format": 1,
+        "robot": robot,
+        "stamp": stamp,
+        "slam_map": "slam_map.yaml",
+    }
+    if args.nav2_map is not None:
+        files += _copy_map(args.nav2_map, out_dir, "nav2_map")
+        manifest["nav2_map"] = "nav2_map.yaml"
+    manifest["pose"] = {"nav2": args.nav2_pose, "slam": args.slam_pose}
+    if args.trajectory is not None:
+        manifest["trajectory"] = _read_trajectory(args.trajectory)
+    manifest["checksums"] = {name: sha256_file(out_dir / name) for name in files}
+    text = yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None)
+    parse_manifest(text, source=out_dir / MANIFEST)  # refuse to write a manifest we would reject
+    partial = out_dir / f".{MANIFEST}.tmp"
+    partial.write_text(text, encoding="utf-8")
+    os.rename(partial, out_dir / MANIFEST)
+    check_bundle_files(out_dir)
+    where = out_dir.resolve()
+    sys.stdout.write(
+        f"wrote bundle {bundle_id} in {where} ({len(files) + 1} files)\n"
+        "upload it with two rsync calls, the manifest last:\n"
+        f"  rsync -a --exclude={MANIFEST} {where}/ SERVER:INBOX/{bundle_id}/\n"
+        f"  rsync -a {where}/{MANIFEST} SERVER:INBOX/{bundle_id}/\n"
+    )
+    return 0
+
+
+# -- mapserver demo --------------------------------------------------------------------------
+
+SAMPLES = Path(__file__).parent / "data" / "samples"
+_DEMO_MARKER = ".mapserver-demo"
+_DEMO_DIRS = ("inbox", "outbox", "archive", "failed")
+
+
+def _prepare_demo_dir(root: Path) -> None:
+    if root.exists() and any(root.iterdir()):
+        if not (root / _DEMO_MARKER).is_file():
+            raise MapserverError(
+                "exists and is not a demo folder made by 'mapserver demo'; choose another with "
+                "--dir",
+                file=root,
+                stage="demo",
+            )
+        for name in _DEMO_DIRS:  # what the previous demo made, nothing else
+            shutil.rmtree(root / name, ignore_errors=True)
+    root.mkdir(parents=True, exist_ok=True)
+    (root / _DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
+    config = {name: name for name in _DEMO_DIRS}
+    config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)  # type: ignore[arg-type]
+    (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+
+
+def _upload_like_rsync(bundle: Path, inbox: Path) -> None:
+    """Copy a bundle the way ``rsync`` does it: each file under a dot-temp name, then renamed;
+    the maps first, ``bundle.yaml`` last (the README's second rsync call)."""
+    target = inbox / bundle.name
+    target.mkdir()
+    files = sorted(p for p in bundle.iterdir() if p.is_file())
+    files.sort(key=lambda p: p.name == "bundle.yaml")
+    for source in files:
+        temp = target / f".{source.name}.{os.urandom(3).hex()}"
+        shutil.copy2(source, temp)
+        os.rename(temp, target / source.name)
+
+
+def _wait_for(
+    predicate: Callable[[], bool], deadline: float, daemon: subprocess.Popen[bytes]
+) -> bool:
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        if daemon.poll() is not None:
+            return predicate()
+        time.sleep(0.05)
+    return predicate()
+
+
+def _any_file(*paths: Path) -> bool:
+    return any(p.is_file() for p in paths)
+
+
+def _describe_result(bundle_id: str, result_dir: Path) -> list[str]:
+    result = yaml.safe_load((result_dir / "result.yaml").read_text(encoding="utf-8"))
+    differences = result.get("differences") or []
+    alignment = result.get("alignment") or {}
+    lines = [
+        f"{bundle_id}: {result.get('status', 'ok')}, {len(differences)} differences "
+        f"(alignment {alignment.get('method', '?')}, score {alignment.get('score', '?')})",
+        f"  result.yaml  {result_dir / 'result.yaml'}",
+        f"  overlay.png  {result_dir / 'overlay.png'}",
+    ]
+    for d in differences:
+        c, b = d.get("centroid", {}), d.get("bbox", {})
+        lines.append(
+            f"  {d.get('id')}. {d.get('kind', '?'):7} {d.get('area_m2', 0):7.2f} m2 at "
+            f"x={c.get('x', 0):.2f} y={c.get('y', 0):.2f}  "
+            f"(box x {b.get('min_x', 0):.2f}..{b.get('max_x', 0):.2f}, "
+            f"y {b.get('min_y', 0):.2f}..{b.get('max_y', 0):.2f})"
+        )
+    return lines
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    root = Path(args.dir).resolve()
+    samples = Path(args.samples) if args.samples else SAMPLES
+    bundles = (
+        sorted(p for p in samples.iterdir() if (p / "bundle.yaml").is_file())
+        if samples.is_dir()
+        else []
+    )
+    if not bundles:
+        raise MapserverError("no sample bundles here", file=samples, stage="demo")
+    _prepare_demo_dir(root)
+    out = sys.stdout
+    out.write(f"demo folder: {root}\n")
+    log_path = root / "mapserver.log"
+    with log_path.open("wb") as log_file:
+        command = [
+            sys.executable,
+            "-m",
+            "mapserver.cli",
+            "run",
+            "--config",
+            str(root / "mapserver.yaml"),
+        ]
+        daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
+        try:
+            out.write(f"started the daemon (pid {daemon.pid}); its log: {log_path}\n")
+            ready = _wait_for(
+                lambda: b"ready:" in log_path.read_bytes(), time.monotonic() + 120, daemon
+            )
+            if not ready:
+                raise MapserverError(
+                    "the daemon did not start; see its log", file=log_path, stage="demo"
+                )
+            out.write(f"uploading {len(bundles)} sample bundles the way rsync does...\n")
+            for bundle in bundles:
+                _upload_like_rsync(bundle, root / "inbox")
+            ok = True
+            deadline = time.monotonic() + 120 + 30 * len(bundles)
+            for bundle in bundles:
+                result_dir = root / "outbox" / bundle.name
+                error = root / "failed" / bundle.name / "error.yaml"
+                done = functools.partial(_any_file, result_dir / "result.yaml", error)
+                if not _wait_for(done, deadline, daemon):
+                    out.write(f"{bundle.name}: no result in time; see {log_path}\n")
+                    ok = False
+                elif error.is_file():
+                    doc = yaml.safe_load(error.read_text(encoding="utf-8"))
+                    out.write(
+                        f"{bundle.name}: failed at stage {doc.get('stage')}: {doc.get('reason')}\n"
+                        f"  error.yaml  {error}\n"
+                    )
+                    ok = False
+                else:
+                    out.write("\n".join(_describe_result(bundle.name, result_dir)) + "\n")
+        finally:
+            daemon.send_signal(signal.SIGTERM)
+            try:
+                code = daemon.wait(timeout=90)
+            except subprocess.TimeoutExpired:
+                daemon.kill()
+                code = daemon.wait()
+    out.write(
+        f"stopped the daemon (exit code {code}). Inputs as they arrived: {root / 'archive'}\n"
+    )
+    return 0 if ok and code == 0 else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapserver", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -65,6 +391,54 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("check-config", help="validate a configuration and print the effective one")
     p.add_argument("--config", type=Path, default=None)
     p.set_defaults(func=_cmd_check_config)
+
+    p = sub.add_parser("run", help="watch the inbox and process bundles until SIGTERM/SIGINT")
+    p.add_argument("--config", type=Path, default=None)
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "bundle",
+        help="write a bundle (robot side)",
+        description="Write a bundle directory with checksums. Give negative poses with '=': "
+        "--nav2-pose=-1.5,2.0,0.3",
+    )
+    p.add_argument("--slam-map", type=Path, required=True, help="slam_toolbox map YAML")
+    p.add_argument("--nav2-map", type=Path, default=None, help="global map YAML (optional)")
+    p.add_argument("--nav2-pose", type=_pose_arg, required=True, metavar="X,Y,YAW")
+    p.add_argument("--slam-pose", type=_pose_arg, required=True, metavar="X,Y,YAW")
+    p.add_argument(
+        "--trajectory",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="slam-frame poses, oldest first: lines 'x y yaw' or a YAML list",
+    )
+    p.add_argument("--robot", default=None, help="robot id (default: the host name)")
+    p.add_argument("--stamp", default=None, help="when the maps were saved (default: now)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="the bundle directory to create; its name is the bundle id",
+    )
+    p.set_defaults(func=_cmd_bundle)
+
+    p = sub.add_parser("demo", help="process the shipped sample bundles with a real daemon")
+    p.add_argument(
+        "--dir",
+        type=Path,
+        default=Path("mapserver-demo"),
+        help="the demo folder (default: ./mapserver-demo)",
+    )
+    p.add_argument(
+        "--samples",
+        type=Path,
+        default=None,
+        help="a folder of bundle folders to upload instead of the shipped samples",
+    )
+    p.set_defaults(func=_cmd_demo)
     return parser
 
 

@@ -1,20 +1,68 @@
-"""Atomic writing of results; archive and failed moves."""
+"""Where results and bundles go: atomic result directories, moves into ``archive/`` and
+``failed/``, and the recovery that lets a restart after a crash finish every bundle exactly once.
+
+The layout (contract section 3, plus two places of the daemon's own)::
+
+    inbox/<name>/                    uploads: robots write here, the daemon only renames out of it
+    inbox/.taken/<id>/               bundles the daemon has taken and not yet archived or failed
+    inbox/.taken/.<id>.error.yaml    the error document of a bundle on its way to failed/
+    outbox/.tmp-*                    results being written (partial; deleted at start-up)
+    outbox/<id>/                     results; the directory appears whole, result.yaml written last
+    archive/<id>/                    processed bundles, exactly as they arrived
+    failed/<id>/                     rejected bundles, exactly as they arrived, plus error.yaml
+
+Every step that changes where a bundle is is one ``rename`` (so inbox, outbox, archive and failed
+must be on one filesystem), fsynced before the next step starts. Taking a bundle renames it into
+``.taken`` under the id it will keep (``run-7``, or ``run-7.2`` when ``run-7`` is in use), so a
+robot re-uploading the same name cannot write into a bundle being processed, and a restart knows
+exactly which bundles are in hand. :meth:`Store.recover` holds the recovery rules; the README lists
+them.
+"""
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
-import tempfile
+import secrets
+import shutil
+import stat
+import string
+from collections.abc import Callable, Iterator
+from contextlib import suppress
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from itertools import count
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from mapserver.pipeline import Outcome
+from mapserver.bundle import is_valid_bundle_id
+from mapserver.errors import ConfigError
+
+if TYPE_CHECKING:
+    from mapserver.config import Config
+    from mapserver.pipeline import Outcome
+
+log = logging.getLogger(__name__)
 
 RESULT = "result.yaml"
+ERROR = "error.yaml"
+TAKEN = ".taken"
+TMP_PREFIX = ".tmp-"
+_PROBE = ".mapserver-probe"
+_ID_CHARS = frozenset(string.ascii_letters + string.digits + "._-")
+_MAX_ID = 128
+
+
+def utc_now() -> str:
+    """The current time as ISO 8601 UTC with milliseconds (``2026-11-21T10:15:03.512Z``)."""
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)
     finally:
@@ -22,34 +70,389 @@ def _fsync_dir(path: Path) -> None:
 
 
 def _write(path: Path, data: bytes) -> None:
-    with path.open("wb") as handle:
+    with path.open("xb") as handle:
         handle.write(data)
         handle.flush()
         os.fsync(handle.fileno())
 
 
+def _rename(src: Path, dst: Path) -> None:
+    """Rename and make the rename durable (both directories fsynced)."""
+    os.rename(src, dst)
+    _fsync_dir(dst.parent)
+    if src.parent != dst.parent:
+        _fsync_dir(src.parent)
+
+
+def _text(value: str) -> str:
+    """A str that YAML can hold: undecodable bytes of file names become U+FFFD."""
+    return value.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+def _dump(document: dict[str, Any]) -> bytes:
+    text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, allow_unicode=True)
+    return text.encode("utf-8")
+
+
+def error_document(bundle_id: str, stage: str, reason: str) -> dict[str, Any]:
+    """The ``error.yaml`` document (contract section 3), ``reason`` on one line."""
+    return {
+        "format": 1,
+        "bundle": _text(bundle_id),
+        "failed_at": utc_now(),
+        "stage": stage,
+        "reason": " ".join(_text(reason).split()),
+    }
+
+
+def sanitize_id(name: str) -> str:
+    """A valid bundle id made from a name that is not one (for ``failed/``): characters outside
+    ``[A-Za-z0-9._-]`` become ``_``, leading ``._-`` are dropped, at most 128 characters."""
+    text = "".join(c if c in _ID_CHARS else "_" for c in name).lstrip("._-")
+    return text[:_MAX_ID] or "bundle"
+
+
+def suffixed(bundle_id: str, n: int) -> str:
+    """``run-7`` -> ``run-7.2`` (still a valid id: the base is shortened when needed)."""
+    suffix = f".{n}"
+    return bundle_id[: _MAX_ID - len(suffix)] + suffix
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int, str]]:
+    """Relative path -> (file type, size, symlink target) of everything under ``root``."""
+    out: dict[str, tuple[int, int, str]] = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            path = os.path.join(dirpath, name)
+            st = os.lstat(path)
+            kind = stat.S_IFMT(st.st_mode)
+            target = os.readlink(path) if stat.S_ISLNK(st.st_mode) else ""
+            size = st.st_size if stat.S_ISREG(st.st_mode) else 0
+            out[os.path.relpath(path, root)] = (kind, size, target)
+    return out
+
+
+def _same_bytes(a: Path, b: Path) -> bool:
+    with a.open("rb") as fa, b.open("rb") as fb:
+        while True:
+            block = fa.read(1 << 20)
+            if block != fb.read(1 << 20):
+                return False
+            if not block:
+                return True
+
+
+def same_tree(a: Path, b: Path) -> bool:
+    """Whether directories ``a`` and ``b`` hold the same names, types and bytes."""
+    try:
+        if not (a.is_dir() and b.is_dir()) or a.is_symlink() or b.is_symlink():
+            return False
+        listing = _tree(a)
+        if listing != _tree(b):
+            return False
+        return all(
+            _same_bytes(a / rel, b / rel)
+            for rel, (kind, _, _) in listing.items()
+            if kind == stat.S_IFREG
+        )
+    except OSError:
+        return False
+
+
+def _make_tmp_dir(outbox: Path, bundle_id: str) -> Path:
+    # Not tempfile.mkdtemp: its 0700 mode would follow the directory into the outbox.
+    while True:
+        path = outbox / f"{TMP_PREFIX}{bundle_id}-{secrets.token_hex(4)}"
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        return path
+
+
+def _write_tmp_result(outbox: Path, outcome: Outcome) -> Path:
+    """``outbox/.tmp-<id>-<random>/`` with the images, then result.yaml, all fsynced."""
+    tmp = _make_tmp_dir(outbox, outcome.bundle_id)
+    for name, data in outcome.images.items():
+        if Path(name).name != name or name.startswith(".") or name == RESULT:
+            raise ValueError(f"image name must be a plain file name, got {name!r}")
+        _write(tmp / name, data)
+    _write(tmp / RESULT, _dump(outcome.result))
+    _fsync_dir(tmp)
+    return tmp
+
+
 def write_result(outbox: Path, outcome: Outcome) -> Path:
     """Write ``outbox/<bundle_id>/`` atomically (temp dir, fsync, rename; result.yaml last).
 
-    Returns the result directory. An existing result directory for the id is replaced.
+    Returns the result directory. An existing result directory for the id is replaced (what
+    ``mapserver process`` wants; the daemon uses :meth:`Store.publish`, which never replaces).
     """
     outbox.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{outcome.bundle_id}-", dir=outbox))
-    for name, data in outcome.images.items():
-        _write(tmp / name, data)
-    text = yaml.safe_dump(outcome.result, sort_keys=False, default_flow_style=None)
-    _write(tmp / RESULT, text.encode("utf-8"))
-    _fsync_dir(tmp)
+    tmp = _write_tmp_result(outbox, outcome)
     final = outbox / outcome.bundle_id
-    if final.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".old-{outcome.bundle_id}-", dir=outbox))
-        os.rename(final, old / "x")
-        os.rename(tmp, final)
-        for child in (old / "x").iterdir():
-            child.unlink()
-        (old / "x").rmdir()
-        old.rmdir()
+    if os.path.lexists(final):
+        old = outbox / f"{TMP_PREFIX}old-{outcome.bundle_id}-{secrets.token_hex(4)}"
+        os.rename(final, old)
+        _rename(tmp, final)
+        shutil.rmtree(old)
     else:
-        os.rename(tmp, final)
-    _fsync_dir(outbox)
+        _rename(tmp, final)
     return final
+
+
+@dataclass(frozen=True)
+class Allocation:
+    """The id a bundle will keep, and the archived bundle it is a byte-identical copy of, if any."""
+
+    bundle_id: str
+    duplicate_of: str | None = None
+
+
+def _no_checkpoint(point: str) -> None:
+    """The default checkpoint: nothing (see ``MAPSERVER_TEST_CRASH_AT`` in :mod:`service`)."""
+
+
+class Store:
+    """The four directories and every move between them.
+
+    ``checkpoint(name)`` is called right after each durable step (``claimed``,
+    ``result-written``, ``published``, ``archived``, ``error-staged``, ``failed-moved``); the
+    crash tests use it to kill the daemon at each of them.
+    """
+
+    def __init__(
+        self,
+        inbox: Path,
+        outbox: Path,
+        archive: Path,
+        failed: Path,
+        *,
+        checkpoint: Callable[[str], None] = _no_checkpoint,
+    ) -> None:
+        self.inbox = Path(inbox)
+        self.outbox = Path(outbox)
+        self.archive_dir = Path(archive)
+        self.failed_dir = Path(failed)
+        self.taken = self.inbox / TAKEN
+        self._checkpoint = checkpoint
+
+    @classmethod
+    def from_config(
+        cls, config: Config, *, checkpoint: Callable[[str], None] = _no_checkpoint
+    ) -> Store:
+        return cls(
+            config.inbox, config.outbox, config.archive, config.failed, checkpoint=checkpoint
+        )
+
+    # -- start-up ---------------------------------------------------------------------------
+
+    def prepare(self) -> None:
+        """Create the directories and check that a bundle can move between them by rename.
+
+        Raises :class:`ConfigError` when it cannot: different filesystems, or (under systemd)
+        different ``ReadWritePaths=`` bind mounts, where rename fails with EXDEV.
+        """
+        for path in (self.inbox, self.outbox, self.archive_dir, self.failed_dir, self.taken):
+            try:
+                path.mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise ConfigError(
+                    f"cannot create the directory: {error.strerror}", file=path
+                ) from None
+        hops = [self.taken, self.archive_dir, self.failed_dir, self.taken]
+        for path in hops:  # a probe a crash left behind
+            with suppress(FileNotFoundError):
+                (path / _PROBE).rmdir()
+        current = self.taken / _PROBE
+        current.mkdir()
+        try:
+            for nxt in hops[1:]:
+                try:
+                    os.rename(current, nxt / _PROBE)
+                except OSError as error:
+                    hint = (
+                        " (different filesystems, or under systemd different ReadWritePaths= "
+                        "entries: give them one common parent)"
+                        if error.errno == errno.EXDEV
+                        else ""
+                    )
+                    raise ConfigError(
+                        f"cannot move a bundle from {current.parent} to {nxt} by rename: "
+                        f"{error.strerror}{hint}; inbox, outbox, archive and failed must be on "
+                        "one filesystem"
+                    ) from None
+                current = nxt / _PROBE
+        finally:
+            with suppress(FileNotFoundError):
+                current.rmdir()
+
+    def recover(self) -> list[str]:
+        """Finish what a crash interrupted; return the ids still to be processed (in ``.taken``).
+
+        The rules, each safe at every crash point because every step is one rename:
+
+        1. ``outbox/.tmp-*`` and ``.taken/*.tmp`` are the daemon's own partial writes: deleted.
+        2. A staged error ``.taken/.<id>.error.yaml`` is finished: the bundle moves to
+           ``failed/<id>/`` (if it had not yet) and the error joins it. If the bundle is in
+           neither place it is still in the inbox (the crash came before it was taken): the
+           staged error is dropped and the bundle is judged again like any upload.
+        3. A bundle in ``.taken/<id>/`` whose ``outbox/<id>/result.yaml`` exists was published:
+           it moves to ``archive/`` without being processed again. Any other one is processed
+           again (the crashed attempt left nothing visible).
+        """
+        for entry in _scandir(self.outbox):
+            if entry.name.startswith(TMP_PREFIX):
+                log.info("recovery: removing partial result %s", entry.path)
+                if entry.is_dir(follow_symlinks=False):
+                    shutil.rmtree(entry.path)
+                else:
+                    os.unlink(entry.path)
+        for entry in _scandir(self.taken):
+            if entry.name.endswith(".tmp"):
+                os.unlink(entry.path)
+        for staged in sorted(self.taken.glob(".*.error.yaml")):
+            bundle_id = staged.name[1 : -len(".error.yaml")]
+            if os.path.lexists(self.taken / bundle_id):
+                log.info("%s: recovery: finishing the move to failed/", bundle_id)
+                self._finish_fail(bundle_id, staged)
+            elif os.path.lexists(self.failed_dir / bundle_id):
+                log.info("%s: recovery: adding error.yaml to failed/%s", bundle_id, bundle_id)
+                self._place_error(staged, self.failed_dir / bundle_id)
+            else:
+                staged.unlink()
+        todo = []
+        for entry in sorted(_scandir(self.taken), key=lambda e: e.name):
+            if entry.name.startswith("."):
+                continue
+            if (self.outbox / entry.name / RESULT).is_file():
+                log.info("%s: recovery: result already published, archiving", entry.name)
+                self.archive(entry.name)
+            else:
+                log.info("%s: recovery: taken but not finished, processing again", entry.name)
+                todo.append(entry.name)
+        return todo
+
+    # -- taking bundles ---------------------------------------------------------------------
+
+    def allocate(self, name: str) -> Allocation:
+        """The id for inbox entry ``name``: the name itself when it is a valid id not yet in use in
+        archive/, failed/, outbox/ or in hand; else the first free ``<id>.2``, ``<id>.3``, ...
+        (contract section 3). Also reports an archived bundle that the upload is byte-identical
+        to (a repeated upload)."""
+        entry = self.inbox / name
+        base = name if is_valid_bundle_id(name) else sanitize_id(name)
+        duplicate = None
+        for n in count(1):
+            candidate = base if n == 1 else suffixed(base, n)
+            archived = self.archive_dir / candidate
+            if duplicate is None and archived.is_dir() and same_tree(entry, archived):
+                duplicate = candidate
+            if not self._in_use(candidate):
+                return Allocation(candidate, duplicate)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _in_use(self, bundle_id: str) -> bool:
+        places = (
+            self.archive_dir / bundle_id,
+            self.failed_dir / bundle_id,
+            self.outbox / bundle_id,
+            self.taken / bundle_id,
+            self._staged(bundle_id),
+        )
+        return any(os.path.lexists(p) for p in places)
+
+    def claim(self, name: str, bundle_id: str) -> Path:
+        """Take inbox entry ``name``: rename it to ``.taken/<bundle_id>``."""
+        path = self._take(name, bundle_id)
+        self._checkpoint("claimed")
+        return path
+
+    def _take(self, name: str, bundle_id: str) -> Path:
+        self.taken.mkdir(exist_ok=True)
+        target = self.taken / bundle_id
+        if os.path.lexists(target):
+            raise FileExistsError(errno.EEXIST, "already in hand", str(target))
+        _rename(self.inbox / name, target)
+        return target
+
+    def taken_path(self, bundle_id: str) -> Path:
+        return self.taken / bundle_id
+
+    # -- results ----------------------------------------------------------------------------
+
+    def publish(self, outcome: Outcome) -> Path:
+        """Write ``outbox/<id>/`` atomically; never replaces an existing result."""
+        final = self.outbox / outcome.bundle_id
+        if os.path.lexists(final):
+            raise FileExistsError(errno.EEXIST, "a result directory already exists", str(final))
+        tmp = _write_tmp_result(self.outbox, outcome)
+        self._checkpoint("result-written")
+        _rename(tmp, final)
+        self._checkpoint("published")
+        return final
+
+    def archive(self, bundle_id: str) -> Path:
+        """Move ``.taken/<id>`` to ``archive/<id>``."""
+        target = self.archive_dir / bundle_id
+        if os.path.lexists(target):
+            raise FileExistsError(errno.EEXIST, "already archived", str(target))
+        _rename(self.taken / bundle_id, target)
+        self._checkpoint("archived")
+        return target
+
+    # -- failures ---------------------------------------------------------------------------
+
+    def reject(self, name: str, bundle_id: str, stage: str, reason: str) -> Path:
+        """Move inbox entry ``name`` to ``failed/<bundle_id>/`` with error.yaml (via .taken)."""
+        staged = self._stage_error(bundle_id, stage, reason)
+        self._take(name, bundle_id)
+        return self._finish_fail(bundle_id, staged)
+
+    def fail(self, bundle_id: str, stage: str, reason: str) -> Path:
+        """Move ``.taken/<bundle_id>`` to ``failed/<bundle_id>/`` with error.yaml."""
+        staged = self._stage_error(bundle_id, stage, reason)
+        return self._finish_fail(bundle_id, staged)
+
+    def _staged(self, bundle_id: str) -> Path:
+        return self.taken / f".{bundle_id}.error.yaml"
+
+    def _stage_error(self, bundle_id: str, stage: str, reason: str) -> Path:
+        self.taken.mkdir(exist_ok=True)
+        staged = self._staged(bundle_id)
+        partial = staged.with_name(staged.name + ".tmp")
+        with suppress(FileNotFoundError):
+            partial.unlink()
+        _write(partial, _dump(error_document(bundle_id, stage, reason)))
+        _rename(partial, staged)
+        self._checkpoint("error-staged")
+        return staged
+
+    def _finish_fail(self, bundle_id: str, staged: Path) -> Path:
+        source = self.taken / bundle_id
+        target = self.failed_dir / bundle_id
+        if source.is_dir() and not source.is_symlink():
+            _rename(source, target)
+        else:
+            # A file or symlink (not a bundle at all) gets a directory, so error.yaml has a place.
+            target.mkdir(exist_ok=True)
+            _rename(source, target / bundle_id)
+        self._checkpoint("failed-moved")
+        self._place_error(staged, target)
+        return target
+
+    def _place_error(self, staged: Path, target: Path) -> None:
+        # Never overwrite an input: a bundle that holds its own error.yaml keeps it.
+        for n in count(1):
+            name = ERROR if n == 1 else f"mapserver-error{'' if n == 2 else n - 1}.yaml"
+            if not os.path.lexists(target / name):
+                _rename(staged, target / name)
+                return
+
+
+def _scandir(path: Path) -> Iterator[os.DirEntry[str]]:
+    try:
+        with os.scandir(path) as entries:
+            yield from list(entries)
+    except FileNotFoundError:
+        return

@@ -152,11 +152,11 @@ def test_completeness_waits_for_files_and_checksums(tmp_path: Path) -> None:
     assert files.slam_image == d / "slam_map.pgm" and files.nav2_yaml is None
     data = dict(MANIFEST, nav2_map="nav2_map.yaml")
     (d / "bundle.yaml").write_text(yaml.safe_dump(data))
-    with pytest.raises(BundleIncomplete, match="nav2_map 'nav2_map.yaml' is not there yet"):
+    with pytest.raises(BundleIncomplete, match=r"nav2_map 'nav2_map\.yaml' is not there yet"):
         check_bundle_files(d)
     data = dict(MANIFEST, checksums={"slam_map.pgm": "0" * 64})
     (d / "bundle.yaml").write_text(yaml.safe_dump(data))
-    with pytest.raises(BundleIncomplete, match="sha256 of 'slam_map.pgm' does not match"):
+    with pytest.raises(BundleIncomplete, match=r"sha256 of 'slam_map\.pgm' does not match"):
         check_bundle_files(d)
 
 
