@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -38,6 +39,24 @@ class GlobalView:
     grid: Grid
     state: NDArray[np.uint8]
     structure: NDArray[np.bool_]
+
+    @cached_property
+    def distance_px(self) -> NDArray[np.float32]:
+        """Distance in pixels from every cell to the nearest global wall."""
+        return _distance_field(self.structure)
+
+    @cached_property
+    def nearest_wall(self) -> FloatArray:
+        """(H, W, 2): (col, row) of the nearest global wall cell, for every cell."""
+        return nearest_wall_field(self.structure)[1]
+
+    def level(self, resolution: float, pad: int) -> _Level:
+        """The wall likelihood at a coarser resolution (cached: the wide search reuses it)."""
+        key = (round(resolution, 9), pad)
+        cache: dict[tuple[float, int], _Level] = self.__dict__.setdefault("_levels", {})
+        if key not in cache:
+            cache[key] = _make_level(self, resolution, pad)
+        return cache[key]
 
 
 @dataclass(frozen=True)
@@ -368,6 +387,51 @@ def _distance(a: Transform2D, b: Transform2D, centre: FloatArray, radius: float)
     return float(math.hypot(da[0], da[1]) + radius * abs(wrap_angle(a.theta - b.theta)))
 
 
+def _search(
+    walls: FloatArray,
+    view: GlobalView,
+    prior: Transform2D,
+    *,
+    theta_half_rad: float,
+    search_xy_m: float,
+    candidates: int,
+    fine_levels: int,
+) -> list[Transform2D]:
+    """Correlative search around the prior; returns the candidates before the ICP polish.
+
+    The coarse level has about 60 pixels across the wall cloud (never finer than the work grid),
+    so its cost is bounded whatever the map size; the best rotation candidates, and the prior,
+    then descend ``fine_levels`` halvings of the resolution.
+    """
+    centre = walls.mean(axis=0)
+    radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
+    target0 = prior.apply(centre)
+    res0 = float(np.clip(radius / 30.0, view.grid.resolution, 0.5))
+    levels_res = [res0]
+    while len(levels_res) <= fine_levels and levels_res[-1] / 2.0 >= view.grid.resolution * 1.5:
+        levels_res.append(levels_res[-1] / 2.0)
+    shift0 = math.ceil(search_xy_m / res0) + 1
+    levels = [view.level(r, shift0 + 4) for r in levels_res]
+
+    step0 = res0 / radius
+    n = max(1, math.ceil(theta_half_rad / step0))
+    thetas = prior.theta + step0 * np.arange(-n, n + 1)
+    coarse = _search_level(levels[0], _thin(walls, res0), centre, target0, thetas, shift0)
+    seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
+    seeds.append((prior.theta, target0))
+    out = []
+    for theta, target in seeds:
+        step = step0
+        for level in levels[1:]:
+            step /= 2.0
+            pts = _thin(walls, level.grid.resolution)
+            rows = _search_level(level, pts, centre, target, theta + step * np.arange(-2, 3), 2)
+            best = max(rows)
+            theta, target = best[1], np.array(best[2:])
+        out.append(_to_transform(theta, centre, target))
+    return out
+
+
 def align(
     local: OccupancyMap,
     view: GlobalView,
@@ -380,28 +444,31 @@ def align(
     min_gain: float = 0.02,
     jump_m: float = 0.5,
     tolerance_m: float = 0.1,
-    candidates: int = 6,
+    candidates: int = 4,
+    narrow_theta_rad: float = math.radians(8.0),
 ) -> Alignment:
     """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
 
-    1. Coarse correlative search over rotation and translation around the prior, at a
-       resolution chosen from the map size so that the cost stays bounded.
-    2. The best few rotation candidates, and the prior itself, descend a pyramid to the work
-       resolution, and an ICP polish finishes each.
-    3. Every candidate is scored on the same cells (:func:`agreement`); among those within a
-       whisker of the best, the one nearest the prior wins (repeated structure). It replaces
-       the prior when it scores better; when it lies more than ``jump_m`` away from the prior
-       (a distinct solution, not a polish of the prior) it must score ``min_gain`` more.
+    1. Correlative search over rotation and translation around the prior (:func:`_search`),
+       first within ``narrow_theta_rad`` (priors are usually within a few degrees), and over the
+       whole ``search_theta_rad`` only when that finds no convincing fit (a mislocalised robot).
+    2. Each candidate is polished with ICP and scored on the same cells: the geometric mean of
+       :func:`agreement` and :func:`consistency`. Among candidates within a whisker of the best,
+       a distinct one nearer the prior wins (repeated structure). It replaces the prior when it
+       scores better; when it lies more than ``jump_m`` away from the prior (a distinct
+       solution, not a polish of the prior) it must score ``min_gain`` more.
 
     A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
     """
     walls = known_points(local, state=OCCUPIED)
     warnings: list[str] = []
-    dist_px = _distance_field(view.structure)
+    dist_px = view.distance_px
 
-    def score(t: Transform2D) -> float:
-        # Geometric mean of: local walls on global walls, and global walls not seen through.
-        p = agreement(walls, t, view.grid, dist_px, tolerance_m=tolerance_m)
+    def agree(t: Transform2D) -> float:
+        return agreement(walls, t, view.grid, dist_px, tolerance_m=tolerance_m)
+
+    def score(t: Transform2D, p: float | None = None) -> float:
+        p = agree(t) if p is None else p
         q = consistency(local, t, view, tolerance_m=tolerance_m) if p > 0 else 0.0
         return math.sqrt(p * q)
 
@@ -424,55 +491,50 @@ def align(
 
     centre = walls.mean(axis=0)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
-    target0 = prior.apply(centre)
+    icp_walls = _thin(walls, 2.0 * view.grid.resolution)
+    icp_reach = max(0.3, 4 * view.grid.resolution)
 
-    # Coarse level: about 60 pixels across the cloud, never finer than the work grid.
-    res0 = float(np.clip(radius / 30.0, view.grid.resolution, 0.5))
-    levels_res = [res0]
-    while levels_res[-1] / 2.0 >= view.grid.resolution * 1.5:
-        levels_res.append(levels_res[-1] / 2.0)
-    shift0 = math.ceil(search_xy_m / res0) + 1
-    pad = shift0 + 4
-    levels = [_make_level(view, r, pad) for r in levels_res]
-
-    step0 = res0 / radius
-    n = max(1, math.ceil(search_theta_rad / step0))
-    thetas = prior.theta + step0 * np.arange(-n, n + 1)
-    coarse = _search_level(levels[0], _thin(walls, res0), centre, target0, thetas, shift0)
-    seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
-    seeds.append((prior.theta, target0))
-
-    _, nearest = nearest_wall_field(view.structure)
-    results: list[tuple[float, Transform2D]] = []
-    for theta, target in seeds:
-        step = step0
-        for level in levels[1:]:
-            step /= 2.0
-            pts = _thin(walls, level.grid.resolution)
-            shift = min(3, level.pad)
-            rows = _search_level(level, pts, centre, target, theta + step * np.arange(-3, 4), shift)
-            best = max(rows)
-            theta, target = best[1], np.array(best[2:])
-        candidate = _to_transform(theta, centre, target)
-        candidate = icp(
+    def evaluate(theta_half: float) -> tuple[float, Transform2D]:
+        found = _search(
             walls,
-            candidate,
-            view.grid,
-            nearest,
-            max_distance_m=max(0.3, 4 * view.grid.resolution),
+            view,
+            prior,
+            theta_half_rad=theta_half,
+            search_xy_m=search_xy_m,
+            candidates=candidates,
+            fine_levels=1,
         )
-        results.append((score(candidate), candidate))
+        polished = []
+        for t in found:
+            t = icp(icp_walls, t, view.grid, view.nearest_wall, max_distance_m=icp_reach)
+            if all(_distance(t, u, centre, radius) > 0.05 for _, u in polished):
+                polished.append((agree(t), t))
+        # The consistency check warps the whole local map: only for the likeliest few.
+        polished.sort(key=lambda pt: -pt[0])
+        scored = [(score(t, p), t) for p, t in polished[:3]]
+        best_score, best = max(scored, key=lambda st: st[0])
+        for s_, t in scored:
+            # Repeated structure: a distinct solution that scores about as well but lies
+            # nearer the prior is the one to believe. Within one basin, the best score wins.
+            distinct = _distance(t, best, centre, radius) > jump_m
+            nearer = _distance(t, prior, centre, radius) < _distance(best, prior, centre, radius)
+            if distinct and nearer and s_ >= best_score - 0.02:
+                best_score, best = s_, t
+        return best_score, best
 
-    chosen_score, chosen = max(results, key=lambda st: st[0])
-    for s, t in results:
-        # Repeated structure: a distinct solution that scores about as well but lies nearer the
-        # prior is the one to believe. Within one basin, the best score wins.
-        distinct = _distance(t, chosen, centre, radius) > 0.5
-        nearer = _distance(t, prior, centre, radius) < _distance(chosen, prior, centre, radius)
-        if distinct and nearer and s >= chosen_score - 0.02:
-            chosen_score, chosen = s, t
-    # A polish within the prior's own basin only has to score better; a jump to a distinct
-    # solution (another column, another doorway) has to win clearly.
+    chosen_score, chosen = evaluate(min(narrow_theta_rad, search_theta_rad))
+    if chosen_score < min_score + 0.1 and search_theta_rad > narrow_theta_rad:
+        wide_score, wide = evaluate(search_theta_rad)
+        if wide_score > chosen_score + min_gain:
+            chosen_score, chosen = wide_score, wide
+    # A last polish with every wall cell, not only the thinned ones.
+    final = icp(
+        walls, chosen, view.grid, view.nearest_wall, max_distance_m=icp_reach / 2, iterations=8
+    )
+    final_score = score(final)
+    if final_score >= chosen_score:
+        chosen_score, chosen = final_score, final
+
     jump = _distance(chosen, prior, centre, radius) > jump_m
     if chosen_score < prior_score + (min_gain if jump else 1e-6):
         return keep_prior(None)

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid
+from mapserver.grid import Grid, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -140,23 +140,16 @@ def estimate_drift(
     return DriftField(float(lo[0]), float(lo[1]), spacing, shifts)
 
 
-def warp_local(
+def _source_coords(
+    cols: FloatArray,
+    rows: FloatArray,
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
-    drift: DriftField | None = None,
-) -> NDArray[np.uint8]:
-    """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
-
-    For a grid cell at nav2 point ``x`` the source is ``T^-1(x - shift(T^-1 x))``: the shift is
-    small and smooth, so evaluating it at the rigid pre-image is exact enough.
-    """
-    cols, rows = np.meshgrid(
-        np.arange(grid.width, dtype=np.float32), np.arange(grid.height, dtype=np.float32)
-    )
-    to_slam = nav2_from_slam.inverse()
-    world = grid.world_from_pixel()
-    m = to_slam.matrix() @ world
+    drift: DriftField | None,
+) -> tuple[FloatArray, FloatArray]:
+    """Fractional local-map (col, row) that lands on grid pixels (cols, rows)."""
+    m = nav2_from_slam.inverse().matrix() @ grid.world_from_pixel()
     sx = m[0, 0] * cols + m[0, 1] * rows + m[0, 2]
     sy = m[1, 0] * cols + m[1, 1] * rows + m[1, 2]
     if drift is not None:
@@ -164,13 +157,50 @@ def warp_local(
         d = drift.at(np.stack([sx.ravel(), sy.ravel()], axis=1))
         c, s = math.cos(nav2_from_slam.theta), math.sin(nav2_from_slam.theta)
         # The shift is in nav2; bring it into the slam frame and move the source back by it.
-        dsx = (c * d[:, 0] + s * d[:, 1]).reshape(shape)
-        dsy = (-s * d[:, 0] + c * d[:, 1]).reshape(shape)
-        sx = sx - dsx
-        sy = sy - dsy
+        sx = sx - (c * d[:, 0] + s * d[:, 1]).reshape(shape)
+        sy = sy - (-s * d[:, 0] + c * d[:, 1]).reshape(shape)
     lgrid = Grid.of_map(local)
-    u = ((sx - lgrid.x0) / lgrid.resolution - 0.5).astype(np.float32)
-    v = (lgrid.height - (sy - lgrid.y0) / lgrid.resolution - 0.5).astype(np.float32)
+    u = (sx - lgrid.x0) / lgrid.resolution - 0.5
+    v = lgrid.height - (sy - lgrid.y0) / lgrid.resolution - 0.5
+    return u, v
+
+
+def warp_local(
+    local: OccupancyMap,
+    grid: Grid,
+    nav2_from_slam: Transform2D,
+    drift: DriftField | None = None,
+    *,
+    step_px: int = 8,
+) -> NDArray[np.uint8]:
+    """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
+
+    For a grid cell at nav2 point ``x`` the source is ``T^-1(x - shift(T^-1 x))``: the shift is
+    small and smooth, so evaluating it at the rigid pre-image is exact enough. The source
+    coordinates are computed on nodes every ``step_px`` pixels and interpolated linearly in
+    between, which is exact for the rigid part and as smooth as the drift field itself.
+    """
+    if drift is None:
+        return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
+    s = step_px
+    # Nodes at the positions cv2.resize samples for an upscale by s, starting one step before
+    # the grid so that its border replication never reaches a kept pixel.
+    n_cols = math.ceil(grid.width / s) + 2
+    n_rows = math.ceil(grid.height / s) + 2
+    node_c = (np.arange(n_cols) + 0.5) * s - 0.5 - s
+    node_r = (np.arange(n_rows) + 0.5) * s - 0.5 - s
+    cc, rr = np.meshgrid(node_c, node_r)
+    u, v = _source_coords(cc, rr, local, grid, nav2_from_slam, drift)
+    size = (n_cols * s, n_rows * s)
+    full_u = cv2.resize(u.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    full_v = cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    full_u = np.ascontiguousarray(full_u[s : s + grid.height, s : s + grid.width])
+    full_v = np.ascontiguousarray(full_v[s : s + grid.height, s : s + grid.width])
     return cv2.remap(
-        local.state, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=UNKNOWN
+        local.state,
+        full_u,
+        full_v,
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=UNKNOWN,
     )

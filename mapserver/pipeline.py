@@ -210,12 +210,11 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         field = None
         if a.deform and alignment.trusted:
             walls = align_stage.known_points(local, state=OCCUPIED)
-            _, nearest = align_stage.nearest_wall_field(view.structure)
             field = deform.estimate_drift(
                 walls,
                 transform,
                 grid,
-                nearest,
+                view.nearest_wall,
                 tile_m=a.deform_tile_m,
                 max_shift_m=a.deform_max_shift_m,
             )
