@@ -22,15 +22,26 @@ from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
 from mapserver import deform, render, roi
 from mapserver import diff as diff_stage
-from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id
+from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id, map_image_name
 from mapserver.config import Config
-from mapserver.errors import BundleError, BundleIncomplete, MapserverError, ProcessingError
+from mapserver.errors import (
+    BundleError,
+    BundleIncomplete,
+    MapFileError,
+    MapserverError,
+    ProcessingError,
+)
 from mapserver.geometry import Pose2D, Transform2D
 from mapserver.grid import Grid
+from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, OccupancyMap, load_map
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+
+# Decoded global maps, kept across bundles in this process (a daemon worker serves many bundles
+# of the same building). Two maps: the one in use and the one before it.
+GLOBAL_MAPS = MapCache(capacity=2)
 
 
 @dataclass(frozen=True)
@@ -94,12 +105,22 @@ def _load(bundle_dir: Path, config: Config) -> _Inputs:
         # process runs on bundles said to be complete: a missing file is an error here.
         raise BundleError(error.problem, file=error.file) from None
     local = load_map(files.slam_yaml, max_pixels=config.max_image_pixels, confine_to=bundle_dir)
-    if files.nav2_yaml is not None:
-        global_map = load_map(
-            files.nav2_yaml, max_pixels=config.max_image_pixels, confine_to=bundle_dir
+    if files.nav2_yaml is not None and files.nav2_image is not None:
+        rel = files.nav2_image.relative_to(bundle_dir).as_posix()
+        global_map = GLOBAL_MAPS.load(
+            files.nav2_yaml,
+            files.nav2_image,
+            max_pixels=config.max_image_pixels,
+            confine_to=bundle_dir,
+            image_sha256=(files.manifest.checksums or {}).get(rel),
         )
     elif config.reference_map is not None:
-        global_map = load_map(config.reference_map, max_pixels=config.max_image_pixels)
+        ref = config.reference_map
+        try:
+            ref_image = ref.parent / map_image_name(ref)
+        except BundleError as error:
+            raise MapFileError(error.problem, file=ref) from None
+        global_map = GLOBAL_MAPS.load(ref, ref_image, max_pixels=config.max_image_pixels)
     else:
         raise BundleError(
             "the manifest names no nav2_map and no reference_map is configured",

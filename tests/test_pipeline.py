@@ -176,3 +176,29 @@ def test_cli_process_broken_bundle_exits_1_with_one_line(tmp_path: Path, bundle:
     assert len(lines) == 1
     assert "bundle.yaml" in lines[0] and "pose.slam" in lines[0] and "finite" in lines[0]
     assert not out.exists() or not any(out.iterdir()), "no partial output"
+
+
+def test_global_map_cache_serves_same_content_and_reloads_changed(tmp_path: Path, world) -> None:
+    from mapserver.mapcache import MapCache
+    from mapserver.maps import save_map
+
+    cache = MapCache(capacity=2)
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    save_map(a / "m.yaml", world.state, world.resolution, world.origin)
+    save_map(b / "m.yaml", world.state, world.resolution, world.origin)
+    first = cache.load(a / "m.yaml", a / "m.pgm", max_pixels=10**8)
+    second = cache.load(b / "m.yaml", b / "m.pgm", max_pixels=10**8, confine_to=b)
+    assert (cache.hits, cache.misses) == (1, 1)
+    assert second.state is first.state and second.source == b / "m.yaml"
+    assert not second.state.flags.writeable, "shared arrays must be read-only"
+    # Same path, new content: decoded again, never served stale.
+    edited = world.state.copy()
+    edited[10:20, 10:20] = 100
+    save_map(b / "m.yaml", edited, world.resolution, world.origin)
+    third = cache.load(b / "m.yaml", b / "m.pgm", max_pixels=10**8)
+    assert cache.misses == 2 and (third.state[10:20, 10:20] == 100).all()
+    # The size limit still applies to a cached map.
+    with pytest.raises(MapFileError, match="exceeds|too large|limit|max"):
+        cache.load(a / "m.yaml", a / "m.pgm", max_pixels=100)

@@ -1,0 +1,98 @@
+"""A small cache of decoded global maps, keyed by content.
+
+Every bundle carries (or names) the global map, and in a fleet it is nearly always the same map:
+decoding it again for each bundle costs more than the rest of the pipeline on large PNG maps.
+The key is the content (the YAML's bytes and the image's sha256, taken from the manifest's
+checksums when the completeness check has already verified them), so a changed map is never
+served stale, whatever its path or time stamp.
+
+The cached arrays are made read-only: the pipeline's stages are pure functions and must not
+write to them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import replace
+from pathlib import Path
+
+from mapserver.bundle import sha256_file
+from mapserver.maps import OccupancyMap, load_map
+
+
+class MapCache:
+    """Least-recently-used cache of :class:`OccupancyMap` by content; ``capacity`` maps."""
+
+    def __init__(self, capacity: int = 2) -> None:
+        if capacity < 0:
+            raise ValueError(f"capacity must be >= 0, got {capacity}")
+        self.capacity = capacity
+        self.hits = 0
+        self.misses = 0
+        self._maps: OrderedDict[tuple[str, str], OccupancyMap] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def load(
+        self,
+        yaml_path: Path,
+        image_path: Path,
+        *,
+        max_pixels: int,
+        confine_to: Path | None = None,
+        image_sha256: str | None = None,
+    ) -> OccupancyMap:
+        """The map of ``yaml_path``, decoded now or taken from the cache.
+
+        ``image_path`` is the image the YAML names (already resolved by the caller), used only
+        for the key; ``image_sha256`` saves hashing it when it is already known to be right.
+        """
+        if self.capacity == 0:
+            return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+        try:
+            yaml_digest = hashlib.sha256(Path(yaml_path).read_bytes()).hexdigest()
+            image_digest = image_sha256 or sha256_file(image_path)
+        except OSError:
+            # Let the loader report the problem with its own, precise message.
+            return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+        key = (yaml_digest, image_digest.lower())
+        with self._lock:
+            cached = self._maps.get(key)
+            if cached is not None:
+                self._maps.move_to_end(key)
+                self.hits += 1
+        if cached is not None:
+            # Same content, another bundle: check the size limit and the paths as for a fresh load.
+            if cached.width * cached.height > max_pixels:
+                return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+            if confine_to is not None:
+                root = Path(confine_to).resolve()
+                for p in (Path(yaml_path), Path(image_path)):
+                    if root not in p.resolve().parents:
+                        return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+            return _renamed(cached, Path(yaml_path), Path(image_path))
+        loaded = load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+        loaded.state.flags.writeable = False
+        loaded.occupancy.flags.writeable = False
+        with self._lock:
+            self.misses += 1
+            self._maps[key] = loaded
+            self._maps.move_to_end(key)
+            while len(self._maps) > self.capacity:
+                self._maps.popitem(last=False)
+        return loaded
+
+    def clear(self) -> None:
+        with self._lock:
+            self._maps.clear()
+
+
+def _renamed(m: OccupancyMap, yaml_path: Path, image_path: Path) -> OccupancyMap:
+    """The cached map, with this bundle's paths in its source fields and warnings."""
+    warnings = m.warnings
+    if m.source is not None:
+        warnings = tuple(w.replace(str(m.source), str(yaml_path)) for w in warnings)
+    if m.image is not None:
+        warnings = tuple(w.replace(str(m.image), str(image_path)) for w in warnings)
+    return replace(m, source=yaml_path, image=image_path, warnings=warnings)
