@@ -121,13 +121,21 @@ def make_view(
     *,
     search_xy_m: float,
     margin_m: float = 1.0,
+    pivot_slam: tuple[float, float] | None = None,
 ) -> GlobalView:
     """Crop and resample the global map around where the prior puts the local map.
 
     The work resolution is the finer of the two maps' resolutions, so that neither map loses
-    detail. Only the crop is touched, never the whole global map.
+    detail. Only the crop is touched, never the whole global map. The crop holds the local map
+    turned by any angle about ``pivot_slam`` (default: its centroid) and shifted by up to
+    ``search_xy_m``.
     """
-    centre, radius = footprint(local)
+    if pivot_slam is None:
+        centre, radius = footprint(local)
+    else:
+        centre = np.asarray(pivot_slam, dtype=float)
+        radius = float(np.sqrt(((known_points(local) - centre) ** 2).sum(axis=1)).max())
+        radius += local.resolution
     cx, cy = prior.apply(centre)
     half = radius + search_xy_m + margin_m
     resolution = min(global_map.resolution, local.resolution)
@@ -396,17 +404,22 @@ def _search(
     search_xy_m: float,
     candidates: int,
     fine_levels: int,
+    pivot: FloatArray | None = None,
 ) -> list[Transform2D]:
     """Correlative search around the prior; returns the candidates before the ICP polish.
 
-    The coarse level has about 60 pixels across the wall cloud (never finer than the work grid),
-    so its cost is bounded whatever the map size; the best rotation candidates, and the prior,
-    then descend ``fine_levels`` halvings of the resolution.
+    Rotations turn the map about ``pivot`` (slam frame; default the walls' centroid): about the
+    robot's pose, a mislocalised prior's error is a rotation plus a small shift. The coarse
+    level has about 60 pixels across the wall cloud (never finer than the work grid), so its
+    cost is bounded whatever the map size; the best rotation candidates, and the prior, then
+    descend ``fine_levels`` halvings of the resolution.
     """
-    centre = walls.mean(axis=0)
+    centroid = walls.mean(axis=0)
+    size = max(float(np.sqrt(((walls - centroid) ** 2).sum(axis=1)).max()), 1.0)
+    centre = centroid if pivot is None else np.asarray(pivot, dtype=float)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
     target0 = prior.apply(centre)
-    res0 = float(np.clip(radius / 30.0, view.grid.resolution, 0.5))
+    res0 = float(np.clip(size / 30.0, view.grid.resolution, 0.5))
     levels_res = [res0]
     while len(levels_res) <= fine_levels and levels_res[-1] / 2.0 >= view.grid.resolution * 1.5:
         levels_res.append(levels_res[-1] / 2.0)
@@ -446,6 +459,7 @@ def align(
     tolerance_m: float = 0.1,
     candidates: int = 4,
     narrow_theta_rad: float = math.radians(8.0),
+    pivot_slam: tuple[float, float] | None = None,
 ) -> Alignment:
     """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
 
@@ -457,6 +471,9 @@ def align(
        a distinct one nearer the prior wins (repeated structure). It replaces the prior when it
        scores better; when it lies more than ``jump_m`` away from the prior (a distinct
        solution, not a polish of the prior) it must score ``min_gain`` more.
+
+    Rotations are searched about ``pivot_slam``, the robot's position in the slam frame when
+    known (the prior comes from the robot's pose there), else about the walls' centroid.
 
     A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
     """
@@ -503,6 +520,7 @@ def align(
             search_xy_m=search_xy_m,
             candidates=candidates,
             fine_levels=1,
+            pivot=None if pivot_slam is None else np.asarray(pivot_slam, dtype=float),
         )
         polished = []
         for t in found:

@@ -205,8 +205,10 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
     prior = files.manifest.nav2_from_slam_prior()
 
     def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
+        robot = files.manifest.pose.slam.to_pose()
+        pivot = (robot.x, robot.y)
         view = align_stage.make_view(
-            global_map, local, prior, search_xy_m=settings.align.search_xy_m
+            global_map, local, prior, search_xy_m=settings.align.search_xy_m, pivot_slam=pivot
         )
         result = align_stage.align(
             local,
@@ -218,6 +220,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             min_score=settings.align.min_score,
             min_gain=settings.align.min_gain,
             jump_m=settings.align.jump_m,
+            pivot_slam=pivot,
         )
         return view, result
 

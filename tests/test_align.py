@@ -121,3 +121,18 @@ def test_inputs_are_not_modified() -> None:
     before_g, before_l = world.state.copy(), cut.local.state.copy()
     _run(world, cut.local, offset(TRUE, 0.3, 0.0, 2.0, CENTRE))
     assert np.array_equal(world.state, before_g) and np.array_equal(cut.local.state, before_l)
+
+
+def test_mislocalised_robot_far_from_the_map_centre() -> None:
+    """AMCL off by 1.5 m and 25 degrees at the robot's pose, 7 m from the map's centre: the
+    error is a rotation about the robot, which a search about the centroid would not cover."""
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    robot_nav2 = (CENTRE[0] + 6.0, CENTRE[1] - 3.5)
+    prior = offset(TRUE, 1.2, -0.9, 25.0, robot_nav2)
+    robot_slam = TRUE.inverse().apply(np.array(robot_nav2))
+    pivot = (float(robot_slam[0]), float(robot_slam[1]))
+    view = make_view(world, cut.local, prior, search_xy_m=2.5, pivot_slam=pivot)
+    result = align(cut.local, view, prior, pivot_slam=pivot)
+    d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
+    assert result.trusted and d < 0.03 and a < 0.3
