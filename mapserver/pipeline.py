@@ -73,8 +73,19 @@ class _Stages:
             if error.stage == error.default_stage and name != "load":
                 error.stage = name
             raise
-        except (ValueError, cv2_error()) as error:  # pragma: no cover - defensive
-            raise ProcessingError(f"{name} failed: {error}", stage=name) from error
+        except MemoryError:
+            raise ProcessingError(
+                f"{name}: out of memory; the maps may be too large for this server", stage=name
+            ) from None
+        except Exception as error:
+            # A bug or an input no check foresaw: name the stage, keep the traceback in the log,
+            # and let the caller fail this bundle only.
+            log.exception("%s: %s failed", self.bundle_id, name)
+            raise ProcessingError(
+                f"{name} failed unexpectedly ({type(error).__name__}: {error}); "
+                "please report this bundle",
+                stage=name,
+            ) from error
         finally:
             ms = (time.perf_counter() - start) * 1000.0
             self.timings_ms[name] = round(ms, 1)
@@ -83,12 +94,6 @@ class _Stages:
     def run(self, name: str, fn: Callable[[], T]) -> T:
         with self.stage(name):
             return fn()
-
-
-def cv2_error() -> type[Exception]:
-    import cv2
-
-    return cv2.error  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True)

@@ -202,3 +202,17 @@ def test_global_map_cache_serves_same_content_and_reloads_changed(tmp_path: Path
     # The size limit still applies to a cached map.
     with pytest.raises(MapFileError, match="exceeds|too large|limit|max"):
         cache.load(a / "m.yaml", a / "m.pgm", max_pixels=100)
+
+
+def test_an_unexpected_failure_names_the_stage(bundle: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from mapserver import cluster
+    from mapserver.errors import ProcessingError
+
+    def broken(*args: object, **kwargs: object) -> list[object]:
+        raise IndexError("index 7 is out of bounds")
+
+    monkeypatch.setattr(cluster, "cluster_mask", broken)
+    with pytest.raises(ProcessingError) as info:
+        process_bundle(bundle, Config())
+    assert info.value.stage == "cluster"
+    assert "IndexError" in info.value.reason
