@@ -204,7 +204,9 @@ def test_global_map_cache_serves_same_content_and_reloads_changed(tmp_path: Path
         cache.load(a / "m.yaml", a / "m.pgm", max_pixels=100)
 
 
-def test_an_unexpected_failure_names_the_stage(bundle: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_an_unexpected_failure_names_the_stage(
+    bundle: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from mapserver import cluster
     from mapserver.errors import ProcessingError
 
