@@ -1,0 +1,317 @@
+"""Watching the inbox and deciding when an upload is a complete bundle.
+
+Three pieces, kept apart:
+
+- :class:`InboxHandler` runs on watchdog's observer thread and only turns events into hints (the
+  name of the inbox entry they concern) on a queue. It never raises: an exception in a handler
+  stops watchdog's observer thread without a word.
+- :class:`StabilityTracker` decides. Events are only hints (the kernel drops them when its queue
+  overflows, rsync's final name arrives as a move, a directory can appear with its contents already
+  inside), so the tracker looks at the directory itself: a fingerprint of every entry, and
+  :func:`check_entry` (contract section 2) once the fingerprint has been still for
+  ``settle_seconds``.
+- :func:`scan` lists the inbox: at start-up (bundles that arrived while the daemon was down) and
+  periodically (events that were lost).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from queue import SimpleQueue
+
+from watchdog.events import (
+    DirCreatedEvent,
+    DirDeletedEvent,
+    DirModifiedEvent,
+    DirMovedEvent,
+    FileClosedEvent,
+    FileCreatedEvent,
+    FileDeletedEvent,
+    FileModifiedEvent,
+    FileMovedEvent,
+    FileSystemEvent,
+    FileSystemEventHandler,
+)
+
+from mapserver.bundle import BundleFiles, check_bundle_files, is_in_flight, is_valid_bundle_id
+from mapserver.errors import BundleError, BundleIncomplete
+
+log = logging.getLogger(__name__)
+
+# Not FileOpenedEvent / FileClosedNoWriteEvent: reading a bundle (the completeness check, the
+# workers) would otherwise wake the daemon for nothing.
+EVENT_TYPES: list[type[FileSystemEvent]] = [
+    FileCreatedEvent,
+    DirCreatedEvent,
+    FileModifiedEvent,
+    DirModifiedEvent,
+    FileMovedEvent,
+    DirMovedEvent,
+    FileDeletedEvent,
+    DirDeletedEvent,
+    FileClosedEvent,
+]
+
+
+def entry_name(inbox: str, path: str | bytes) -> str | None:
+    """The inbox entry (first path component below ``inbox``) that ``path`` belongs to, or None
+    for the inbox itself, paths outside it and in-flight names (which include ``.taken``)."""
+    rel = os.path.relpath(os.fsdecode(path), inbox)
+    if rel == "." or rel == ".." or rel.startswith(".." + os.sep) or os.path.isabs(rel):
+        return None
+    name = rel.split(os.sep, 1)[0]
+    return None if is_in_flight(name) else name
+
+
+class InboxHandler(FileSystemEventHandler):
+    """Puts the inbox entry name of every event on ``hints``; does nothing else."""
+
+    def __init__(self, inbox: Path, hints: SimpleQueue[str | None]) -> None:
+        super().__init__()
+        self._inbox = os.fspath(inbox)
+        self._hints = hints
+
+    def on_any_event(self, event: FileSystemEvent) -> None:
+        try:
+            for path in (event.src_path, event.dest_path):
+                if path:
+                    name = entry_name(self._inbox, path)
+                    if name is not None:
+                        self._hints.put(name)
+        except Exception:  # never let it reach watchdog: its thread would die silently
+            log.exception("inbox: cannot handle event %r", event)
+
+
+def scan(inbox: Path) -> list[str]:
+    """The inbox entries that may be bundles (in-flight names left out), sorted."""
+    with os.scandir(inbox) as entries:
+        return sorted(e.name for e in entries if not is_in_flight(e.name))
+
+
+Fingerprint = tuple[tuple[str, int, int, int, int, int], ...]
+
+
+def fingerprint(path: Path) -> Fingerprint | None:
+    """(relative name, type, size, mtime_ns, ctime_ns, inode) of ``path`` and everything below it,
+    or None when ``path`` is gone.
+
+    In-flight files (rsync's ``.name.XXXXXX``) are included although they are never read: one
+    that still grows means the upload is going on. ctime and inode catch what size and mtime miss
+    (``rsync -a`` sets old mtimes; a file replaced by rename keeps its size).
+    """
+
+    def item(rel: str, st: os.stat_result) -> tuple[str, int, int, int, int, int]:
+        kind = stat.S_IFMT(st.st_mode)
+        return (rel, kind, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+
+    try:
+        top = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    items = [item("", top)]
+    if stat.S_ISDIR(top.st_mode):
+        for dirpath, dirnames, filenames in os.walk(path):
+            for name in dirnames + filenames:
+                full = os.path.join(dirpath, name)
+                try:
+                    items.append(item(os.path.relpath(full, path), os.lstat(full)))
+                except FileNotFoundError:
+                    items.append((os.path.relpath(full, path), 0, -1, 0, 0, 0))
+    return tuple(sorted(items))
+
+
+def _walk(root: Path) -> Iterator[Path]:
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            yield Path(dirpath) / name
+
+
+def check_entry(path: Path) -> BundleFiles:
+    """Contract section 2 for inbox entry ``path``, plus what makes an entry unsafe to read.
+
+    Raises :class:`BundleIncomplete` while the upload may still be going on and
+    :class:`BundleError` for an entry that can never be a bundle: not a directory, an invalid id,
+    a symlink that is absolute or leaves the bundle, a special file (a FIFO would block a reader).
+    """
+    name = path.name
+    if path.is_symlink():
+        raise BundleError("a bundle must be a directory, not a symbolic link", file=name)
+    if not path.is_dir():
+        raise BundleError("not a directory: a bundle is a directory holding bundle.yaml", file=name)
+    if not is_valid_bundle_id(name):
+        raise BundleError(
+            f"invalid bundle id {name!r}: use 1 to 128 letters, digits, '.', '_' and '-', "
+            "starting with a letter or digit"
+        )
+    root = path.resolve()
+    for item in _walk(path):
+        rel = item.relative_to(path)
+        mode = item.lstat().st_mode
+        if stat.S_ISLNK(mode):
+            target = os.readlink(item)
+            resolved = item.resolve()
+            if os.path.isabs(target) or (resolved != root and root not in resolved.parents):
+                raise BundleError(
+                    f"symbolic link '{rel}' -> '{target}' points outside the bundle",
+                    file=f"{name}/{rel}",
+                )
+            mode = resolved.stat().st_mode if resolved.exists() else stat.S_IFREG
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise BundleError("not a regular file or directory", file=f"{name}/{rel}")
+    return check_bundle_files(path)
+
+
+@dataclass(frozen=True)
+class Ready:
+    """Inbox entry ``name`` is a complete bundle; ``waited_s`` since the tracker first saw it."""
+
+    name: str
+    waited_s: float
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """Inbox entry ``name`` can never be a bundle (or never completed)."""
+
+    name: str
+    stage: str
+    reason: str
+
+
+Decision = Ready | Rejected
+
+
+@dataclass
+class _Entry:
+    fingerprint: Fingerprint
+    first_seen: float
+    last_change: float
+    incomplete: str | None = None
+    """Why the current fingerprint is not a complete bundle (None: not checked yet)."""
+
+
+class StabilityTracker:
+    """Decides when inbox entries are complete bundles (contract section 2).
+
+    Per entry it keeps a fingerprint (:func:`fingerprint`), when it was first seen and when the
+    fingerprint last changed. An entry whose fingerprint has been still for ``settle_seconds`` is
+    checked once (:func:`check_entry`); the check is trusted only if the fingerprint is the same
+    after it. A complete bundle becomes :class:`Ready`, an entry that can never be a bundle
+    :class:`Rejected`; one that stays incomplete with nothing changing for
+    ``stale_after_seconds`` is rejected with the last reason it was incomplete (an upload that is
+    still making progress is never cut off). Each decision is returned once, after which the entry
+    is forgotten: a new upload under the same name is a new entry.
+
+    Not thread-safe: the service's main loop is its only user.
+    """
+
+    def __init__(
+        self,
+        inbox: Path,
+        *,
+        settle_seconds: float,
+        stale_after_seconds: float,
+        clock: Callable[[], float] = time.monotonic,
+        check: Callable[[Path], object] = check_entry,
+    ) -> None:
+        self._inbox = Path(inbox)
+        self._settle = settle_seconds
+        self._stale = stale_after_seconds
+        self._clock = clock
+        self._check = check
+        self._entries: dict[str, _Entry] = {}
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries
+
+    def touch(self, name: str) -> None:
+        """Look at entry ``name`` now (an event hinted at it, or a scan listed it)."""
+        if is_in_flight(name):
+            return
+        current = fingerprint(self._inbox / name)
+        if current is None:
+            self._entries.pop(name, None)
+            return
+        now = self._clock()
+        entry = self._entries.get(name)
+        if entry is None:
+            self._entries[name] = _Entry(current, now, now)
+        elif entry.fingerprint != current:
+            entry.fingerprint, entry.last_change, entry.incomplete = current, now, None
+
+    def forget_missing(self, present: set[str]) -> None:
+        """Drop entries not in ``present`` (a scan's listing)."""
+        for name in [n for n in self._entries if n not in present]:
+            del self._entries[name]
+
+    def next_deadline(self) -> float | None:
+        """The clock time at which :meth:`poll` may next decide something, None with no entries."""
+        deadlines = [
+            e.last_change + (self._settle if e.incomplete is None else self._stale)
+            for e in self._entries.values()
+        ]
+        return min(deadlines, default=None)
+
+    def poll(self) -> list[Decision]:
+        """The decisions that are due now."""
+        decisions: list[Decision] = []
+        for name in list(self._entries):
+            decision = self._decide(name, self._entries[name])
+            if decision is not None:
+                del self._entries[name]
+                decisions.append(decision)
+        return decisions
+
+    def _decide(self, name: str, entry: _Entry) -> Decision | None:
+        now = self._clock()
+        if now - entry.last_change < self._settle:
+            return None
+        path = self._inbox / name
+        if entry.incomplete is not None:
+            if now - entry.last_change < self._stale or not self._still(name, entry, path, now):
+                return None
+            return Rejected(
+                name,
+                "upload",
+                f"still incomplete after {now - entry.last_change:.0f} s without a change: "
+                f"{entry.incomplete}",
+            )
+        if not self._still(name, entry, path, now):
+            return None
+        decision: Decision | None
+        try:
+            self._check(path)
+        except BundleIncomplete as error:
+            entry.incomplete = error.reason
+            decision = None
+        except BundleError as error:
+            decision = Rejected(name, error.stage, error.reason)
+        except OSError as error:
+            entry.incomplete = f"{path}: {error.strerror}"
+            decision = None
+        else:
+            decision = Ready(name, now - entry.first_seen)
+        # The check read the files: trust it only if nothing changed meanwhile.
+        if not self._still(name, entry, path, self._clock()):
+            return None
+        return decision
+
+    def _still(self, name: str, entry: _Entry, path: Path, now: float) -> bool:
+        """Whether the entry is unchanged since the stored fingerprint (updating it if not)."""
+        current = fingerprint(path)
+        if current is None:
+            self._entries.pop(name, None)
+            return False
+        if current != entry.fingerprint:
+            entry.fingerprint, entry.last_change, entry.incomplete = current, now, None
+            return False
+        return True
