@@ -1,0 +1,582 @@
+"""The daemon (``mapserver run``): wires the inbox observer, the stability tracker, a pool of
+worker processes and the store; handles signals; talks to systemd.
+
+One thread, the main loop, does everything that changes the filesystem, in this order on every
+wake-up: look at the inbox entries that events hinted at, rescan when due, take the bundles the
+tracker decided on (:meth:`Store.claim` / :meth:`Store.reject`), publish and archive what the
+workers finished, hand queued bundles to free workers, tell systemd it is alive. Workers only read
+a bundle and return an :class:`~mapserver.pipeline.Outcome`; they write nothing, so a worker that
+crashes (or a daemon killed with -9) leaves nothing half-done behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from queue import Empty, SimpleQueue
+from types import FrameType
+from typing import Any
+
+from watchdog.observers import Observer
+from watchdog.observers.api import BaseObserver
+from watchdog.observers.polling import PollingObserver
+
+from mapserver.config import Config
+from mapserver.errors import MapserverError
+from mapserver.inbox import EVENT_TYPES, Decision, InboxHandler, Rejected, StabilityTracker, scan
+from mapserver.notify import notify, watchdog_period
+from mapserver.outbox import RESULT, Store
+from mapserver.pipeline import Outcome, process_bundle
+
+log = logging.getLogger(__name__)
+
+CRASH_ENV = "MAPSERVER_TEST_CRASH_AT"
+"""Test hook: the name of a checkpoint (see :class:`~mapserver.outbox.Store`, plus
+``submitted``) at which the daemon kills itself with SIGKILL, to test recovery from each one."""
+
+ProcessFn = Callable[..., Outcome]
+
+
+def env_checkpoint() -> Callable[[str], None]:
+    """The checkpoint function that honours ``$MAPSERVER_TEST_CRASH_AT``."""
+    point = os.environ.get(CRASH_ENV)
+
+    def checkpoint(name: str) -> None:
+        if name == point:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    return checkpoint
+
+
+# -- the worker side ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WorkDone:
+    """What a worker returns: an outcome, or the stage and reason it failed."""
+
+    outcome: Outcome | None
+    stage: str = ""
+    reason: str = ""
+    seconds: float = 0.0
+
+
+def _init_worker(setup: Callable[[], None] | None) -> None:
+    # Stopping is the parent's business: a Ctrl-C in a terminal reaches the whole process group,
+    # and a worker that died of it would look like a crash.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if setup is not None:
+        setup()
+
+
+def _noop() -> None:
+    return None
+
+
+def work(process: ProcessFn, bundle_dir: str, config: Config, bundle_id: str) -> WorkDone:
+    """Run in a worker: process one bundle; bad input becomes a :class:`WorkDone` with a reason."""
+    start = time.perf_counter()
+    try:
+        outcome = process(Path(bundle_dir), config, bundle_id=bundle_id)
+    except MapserverError as error:
+        return WorkDone(None, error.stage, error.reason, time.perf_counter() - start)
+    except Exception as error:
+        log.exception("%s: internal error", bundle_id)
+        reason = f"internal error: {type(error).__name__}: {error}"
+        return WorkDone(None, "process", reason, time.perf_counter() - start)
+    return WorkDone(outcome, seconds=time.perf_counter() - start)
+
+
+# -- the parent side ----------------------------------------------------------------------------
+
+
+@dataclass
+class _Job:
+    bundle_id: str
+    taken_at: float
+    """Monotonic time the bundle was taken as complete (or found in hand at start-up)."""
+    attempts: int = 0
+    alone: bool = False
+    """It was in a worker pool that broke: it now runs with no other bundle beside it."""
+    generation: int = 0
+
+
+@dataclass
+class _Counts:
+    results: int = 0
+    failed: int = 0
+    recovered: int = 0
+
+
+class Service:
+    """The daemon. ``run()`` blocks until :meth:`request_stop` (or SIGTERM/SIGINT when run in the
+    main thread) and returns the exit code.
+
+    Parameters
+    ----------
+    config
+        The validated configuration; read once, plain values passed down.
+    process
+        The function a worker calls (a module-level function, so it can be pickled):
+        ``process(bundle_dir, config, bundle_id=...) -> Outcome``.
+    worker_setup
+        Called once in each worker process (the CLI passes its logging set-up).
+    stop_timeout
+        After a stop request, how long bundles in hand may take to finish before their workers
+        are killed (they are processed again at the next start).
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        process: ProcessFn = process_bundle,
+        worker_setup: Callable[[], None] | None = None,
+        stop_timeout: float = 60.0,
+        checkpoint: Callable[[str], None] | None = None,
+    ) -> None:
+        self._config = config
+        self._process = process
+        self._worker_setup = worker_setup
+        self._stop_timeout = stop_timeout
+        self._checkpoint = checkpoint or env_checkpoint()
+        self._store = Store.from_config(config, checkpoint=self._checkpoint)
+        self._workers = config.worker_count()
+        self._tracker = StabilityTracker(
+            config.inbox,
+            settle_seconds=config.settle_seconds,
+            stale_after_seconds=config.stale_after_seconds,
+        )
+        self._hints: SimpleQueue[str | None] = SimpleQueue()
+        self._queue: deque[_Job] = deque()
+        self._running: dict[Future[WorkDone], _Job] = {}
+        self._pool: ProcessPoolExecutor | None = None
+        self._generation = 0
+        self._pool_broken = False
+        self._counts = _Counts()
+        self._stopping = False
+        self._abort = False
+        self.ready = threading.Event()
+        """Set once the start-up scan is done (when systemd gets READY=1)."""
+        self._next_rescan = 0.0
+        self._last_ping = float("-inf")
+        period = watchdog_period()
+        self._ping_every = min(1.0, period / 3) if period else 1.0
+
+    # -- control --------------------------------------------------------------------------
+
+    @property
+    def stopping(self) -> bool:
+        return self._stopping
+
+    def request_stop(self) -> None:
+        """Stop taking bundles, finish the ones in hand, return from :meth:`run`. A second call
+        stops at once (bundles in hand are processed again at the next start). Safe to call from
+        a signal handler or another thread."""
+        if self._stopping:
+            self._abort = True
+        self._stopping = True
+        self._hints.put(None)
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.request_stop()
+
+    def run(self) -> int:
+        """Run until stopped; 0 after a requested stop, 1 when the inbox cannot be watched."""
+        previous: dict[int, Any] = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                previous[sig] = signal.signal(sig, self._on_signal)
+        try:
+            return self._run()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+    def _run(self) -> int:
+        config = self._config
+        self._store.prepare()
+        now = time.monotonic()
+        recovered = self._store.recover()
+        self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
+        self._counts.recovered = len(recovered)
+        self._pool = self._new_pool()
+        self._warm_up()
+        observer = self._start_observer()
+        code = 0
+        try:
+            self._rescan()
+            log.info(
+                "ready: watching %s with the %s observer, %d workers; %d inbox entries waiting, "
+                "%d bundles in hand from before",
+                config.inbox,
+                "polling" if isinstance(observer, PollingObserver) else "native",
+                self._workers,
+                len(self._tracker),
+                len(recovered),
+            )
+            notify("READY=1", self._status())
+            self.ready.set()
+            code = self._loop(observer)
+        finally:
+            notify("STOPPING=1", "STATUS=stopping: finishing the bundles in hand")
+            observer.stop()
+            observer.join()
+            self._finish_running()
+        log.info(
+            "stopped: %d results, %d failed; %d bundles taken and not started (processed at the "
+            "next start)",
+            self._counts.results,
+            self._counts.failed,
+            len(self._queue),
+        )
+        return code
+
+    # -- the main loop ----------------------------------------------------------------------
+
+    def _loop(self, observer: BaseObserver) -> int:
+        while not self._stopping:
+            names = self._wait(self._timeout())
+            if self._stopping:
+                break
+            for name in names:
+                self._tracker.touch(name)
+            if time.monotonic() >= self._next_rescan:
+                self._rescan()
+            for decision in self._tracker.poll():
+                _guarded(decision.name, self._take, decision)
+            self._collect()
+            self._dispatch()
+            if not _observer_alive(observer):
+                log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
+                return 1
+            self._heartbeat(observer)
+        log.info("stopping: no more bundles are taken")
+        return 0
+
+    def _timeout(self) -> float:
+        now = time.monotonic()
+        timeout = min(self._next_rescan - now, self._ping_every)
+        deadline = self._tracker.next_deadline()
+        if deadline is not None:
+            timeout = min(timeout, deadline - now)
+        return max(timeout, 0.01)
+
+    def _wait(self, timeout: float) -> set[str]:
+        """Block until a hint arrives (or ``timeout``), then drain the queue: the inbox entry
+        names hinted at. Many events about one upload become one look at it."""
+        names: set[str] = set()
+        try:
+            item = self._hints.get(timeout=timeout)
+        except Empty:
+            return names
+        while True:
+            if item is not None:
+                names.add(item)
+            try:
+                item = self._hints.get_nowait()
+            except Empty:
+                return names
+
+    def _rescan(self) -> None:
+        self._next_rescan = time.monotonic() + self._config.rescan_seconds
+        try:
+            names = scan(self._config.inbox)
+        except OSError as error:
+            log.error("inbox: cannot list %s: %s", self._config.inbox, error.strerror)
+            return
+        for name in names:
+            self._tracker.touch(name)
+        self._tracker.forget_missing(set(names))
+
+    # -- taking bundles -----------------------------------------------------------------------
+
+    def _take(self, decision: Decision) -> None:
+        name = decision.name
+        try:
+            allocation = self._store.allocate(name)
+            bundle_id = allocation.bundle_id
+            if isinstance(decision, Rejected):
+                self._reject(name, bundle_id, decision.stage, decision.reason)
+                return
+            if allocation.duplicate_of is not None:
+                reason = (
+                    f"a repeated upload: identical to archive/{allocation.duplicate_of}, which was "
+                    "processed already; upload new maps under a new bundle id"
+                )
+                self._reject(name, bundle_id, "bundle", reason)
+                return
+            self._store.claim(name, bundle_id)
+        except FileNotFoundError:
+            log.warning("%s: left the inbox before it was taken", name)
+            return
+        except OSError as error:
+            log.error("%s: cannot take it from the inbox: %s", name, error)
+            return
+        if bundle_id != name:
+            log.info("%s: id already in use, taken as %s", name, bundle_id)
+        log.info("%s: upload %.1f ms", bundle_id, decision.waited_s * 1000.0)
+        self._queue.append(_Job(bundle_id, time.monotonic()))
+
+    def _reject(self, name: str, bundle_id: str, stage: str, reason: str) -> None:
+        path = self._store.reject(name, bundle_id, stage, reason)
+        self._counts.failed += 1
+        log.warning("%s: done: failed at stage %s: %s -> %s", bundle_id, stage, reason, path)
+
+    # -- workers ----------------------------------------------------------------------------
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        # forkserver, not fork: a pool replaced after a crash is forked while the observer thread
+        # runs, and fork() with threads can copy a held lock into the child. The server imports
+        # the pipeline once; every worker (also those replacing a crashed pool) forks from it.
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(["mapserver.pipeline"])
+        return ProcessPoolExecutor(
+            max_workers=self._workers,
+            mp_context=context,
+            initializer=_init_worker,
+            initargs=(self._worker_setup,),
+        )
+
+    def _warm_up(self) -> None:
+        """Start the worker processes now, not on the first bundle (the first start waits for the
+        fork server to import the pipeline). Not waited for beyond that: a broken pool shows on
+        first use and is replaced then."""
+        assert self._pool is not None
+        for _ in range(self._workers):
+            self._pool.submit(_noop)
+
+    def _replace_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool = self._new_pool()
+        self._generation += 1
+        self._pool_broken = False
+
+    def _dispatch(self) -> None:
+        if self._stopping:
+            return
+        while self._queue and len(self._running) < self._workers:
+            if any(job.alone for job in self._running.values()):
+                return
+            job = self._queue[0]
+            if job.alone and self._running:
+                return
+            self._queue.popleft()
+            self._submit(job)
+            if job.alone:
+                return
+
+    def _submit(self, job: _Job) -> None:
+        if self._pool_broken:
+            self._replace_pool()
+        assert self._pool is not None
+        path = str(self._store.taken_path(job.bundle_id))
+        args = (self._process, path, self._config, job.bundle_id)
+        try:
+            future = self._pool.submit(work, *args)
+        except (BrokenProcessPool, RuntimeError):
+            self._replace_pool()
+            future = self._pool.submit(work, *args)
+        if job.attempts == 0:
+            log.info("%s: queue %.1f ms", job.bundle_id, (time.monotonic() - job.taken_at) * 1e3)
+        job.attempts += 1
+        job.generation = self._generation
+        self._running[future] = job
+        future.add_done_callback(self._wake)
+        self._checkpoint("submitted")
+
+    def _wake(self, future: Future[WorkDone]) -> None:
+        self._hints.put(None)
+
+    def _collect(self) -> None:
+        for future in [f for f in self._running if f.done()]:
+            job = self._running.pop(future)
+            try:
+                done = future.result()
+            except BrokenProcessPool:
+                _guarded(job.bundle_id, self._crashed, job)
+                continue
+            except Exception as error:  # the outcome could not be sent back, for instance
+                reason = f"internal error: {type(error).__name__}: {error}"
+                _guarded(job.bundle_id, self._fail, job, "process", reason)
+                continue
+            _guarded(job.bundle_id, self._finish, job, done)
+        if self._pool_broken and not self._stopping:
+            self._replace_pool()
+
+    def _crashed(self, job: _Job) -> None:
+        if job.generation == self._generation:
+            self._pool_broken = True
+        if self._stopping:
+            log.warning(
+                "%s: its worker died while stopping; processed again at the next start",
+                job.bundle_id,
+            )
+            return
+        if job.alone:
+            self._fail(
+                job,
+                "process",
+                "the worker process died while processing this bundle, twice, with no other "
+                "bundle beside it (out of memory, or a crash in the image code)",
+            )
+            return
+        log.warning(
+            "%s: a worker process died while this bundle was in hand; retrying it alone",
+            job.bundle_id,
+        )
+        job.alone = True
+        self._queue.appendleft(job)
+
+    def _finish(self, job: _Job, done: WorkDone) -> None:
+        bundle_id = job.bundle_id
+        outcome = done.outcome
+        if outcome is None:
+            self._fail(job, done.stage, done.reason)
+            return
+        if outcome.bundle_id != bundle_id:
+            reason = f"internal error: the result is for bundle {outcome.bundle_id!r}"
+            self._fail(job, "process", reason)
+            return
+        start = time.perf_counter()
+        try:
+            result_dir = self._store.publish(outcome)
+        except (OSError, ValueError, TypeError) as error:
+            self._fail(job, "write", f"cannot write the result: {error}")
+            return
+        published = time.perf_counter()
+        log.info("%s: publish %.1f ms", bundle_id, (published - start) * 1000.0)
+        try:
+            self._store.archive(bundle_id)
+        except OSError as error:
+            log.error("%s: result written, but cannot archive the bundle: %s", bundle_id, error)
+            return
+        log.info("%s: archive %.1f ms", bundle_id, (time.perf_counter() - published) * 1000.0)
+        self._counts.results += 1
+        log.info(
+            "%s: done: ok, %d differences, %.2f s from complete to result (processing %.2f s) "
+            "-> %s",
+            bundle_id,
+            len(outcome.result.get("differences") or []),
+            time.monotonic() - job.taken_at,
+            done.seconds,
+            result_dir / RESULT,
+        )
+
+    def _fail(self, job: _Job, stage: str, reason: str) -> None:
+        try:
+            path = self._store.fail(job.bundle_id, stage, reason)
+        except OSError as error:
+            log.error(
+                "%s: failed at stage %s (%s), and cannot move it to failed/: %s; it stays in hand "
+                "until the next start",
+                job.bundle_id,
+                stage,
+                reason,
+                error,
+            )
+            return
+        self._counts.failed += 1
+        log.warning("%s: done: failed at stage %s: %s -> %s", job.bundle_id, stage, reason, path)
+
+    def _finish_running(self) -> None:
+        """Let the bundles in hand finish (bounded by ``stop_timeout``), then stop the pool."""
+        if self._running:
+            log.info("stopping: finishing %d bundles in hand", len(self._running))
+        deadline = time.monotonic() + self._stop_timeout
+        while self._running and not self._abort and time.monotonic() < deadline:
+            self._wait(min(self._ping_every, max(deadline - time.monotonic(), 0.0)))
+            self._collect()
+            if time.monotonic() - self._last_ping >= self._ping_every:
+                notify("WATCHDOG=1")
+                self._last_ping = time.monotonic()
+        if self._running:
+            log.warning(
+                "stopping: %d bundles unfinished; they are processed again at the next start",
+                len(self._running),
+            )
+        # Idle workers hold nothing; killing them beats waiting for one still starting up.
+        self._kill_workers()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def _kill_workers(self) -> None:
+        # No public API before Python 3.14 (kill_workers()); workers ignore SIGTERM.
+        processes = getattr(self._pool, "_processes", None) or {}
+        for process in list(processes.values()):
+            process.kill()
+
+    def _workers_alive(self) -> bool:
+        if self._pool is None or self._pool_broken:
+            return False
+        processes = getattr(self._pool, "_processes", None) or {}
+        return all(p.is_alive() for p in list(processes.values()))
+
+    # -- systemd --------------------------------------------------------------------------
+
+    def _status(self) -> str:
+        return (
+            f"STATUS={len(self._tracker)} uploading, {len(self._queue)} queued, "
+            f"{len(self._running)} processing; {self._counts.results} results, "
+            f"{self._counts.failed} failed"
+        )
+
+    def _heartbeat(self, observer: BaseObserver) -> None:
+        """WATCHDOG=1 (with STATUS) from the main loop, only while the observer and the workers
+        are alive: systemd restarts a daemon that hangs or has lost either."""
+        now = time.monotonic()
+        if now - self._last_ping < self._ping_every:
+            return
+        self._last_ping = now
+        if _observer_alive(observer) and self._workers_alive():
+            notify("WATCHDOG=1", self._status())
+        else:
+            notify(self._status())
+
+    # -- the observer ------------------------------------------------------------------------
+
+    def _start_observer(self) -> BaseObserver:
+        config = self._config
+        handler = InboxHandler(config.inbox, self._hints)
+        kinds = ["native", "polling"] if config.observer == "native" else ["polling"]
+        for kind in kinds:
+            observer: BaseObserver
+            if kind == "polling":
+                observer = PollingObserver(timeout=min(1.0, max(0.1, config.settle_seconds / 2)))
+            else:
+                observer = Observer()
+            observer.schedule(handler, str(config.inbox), recursive=True, event_filter=EVENT_TYPES)
+            try:
+                observer.start()
+            except OSError as error:
+                if kind == "polling":
+                    raise
+                log.warning("inbox: cannot watch with inotify (%s); polling instead", error)
+                continue
+            return observer
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _guarded(bundle_id: str, handle: Callable[..., None], *args: Any) -> None:
+    """A bug met while handling one bundle is logged; it never stops the daemon (the bundle stays
+    where it is, and the next start takes it up again)."""
+    try:
+        handle(*args)
+    except Exception:
+        log.exception("%s: internal error while handling it; left where it is", bundle_id)
+
+
+def _observer_alive(observer: BaseObserver) -> bool:
+    return observer.is_alive() and all(e.is_alive() for e in observer.emitters)
