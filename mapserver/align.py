@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.diff import near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.grid import Grid, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
@@ -219,16 +220,19 @@ def consistency(
     """
     local_state = resample(local.state, Grid.of_map(local), view.grid, nav2_from_slam)
     walls = view.structure & (local_state != UNKNOWN)
-    n = int(walls.sum())
+    n = int(np.count_nonzero(walls))
     if n == 0:
         return 0.0
     seen_free = walls & (local_state == FREE)
     if seen_free.any():
-        local_walls = (local_state == OCCUPIED).astype(np.uint8)
+        local_walls = local_state == OCCUPIED
         if local_walls.any():
-            d = cv2.distanceTransform(1 - local_walls, cv2.DIST_L2, 5)
-            seen_free &= d * view.grid.resolution > tolerance_m
-    return 1.0 - float(seen_free.sum()) / n
+            # "No local wall within tolerance" as a dilation: the same cells as thresholding
+            # the distance transform, several times cheaper (see diff.offset_distances).
+            res = view.grid.resolution
+            reach = offset_distances(tolerance_m / res)
+            seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
+    return 1.0 - float(np.count_nonzero(seen_free)) / n
 
 
 # --- correlative search ----------------------------------------------------------------------
