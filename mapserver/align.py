@@ -47,9 +47,9 @@ class GlobalView:
         return _distance_field(self.structure)
 
     @cached_property
-    def nearest_wall(self) -> FloatArray:
-        """(H, W, 2): (col, row) of the nearest global wall cell, for every cell."""
-        return nearest_wall_field(self.structure)[1]
+    def nearest_wall(self) -> NearestWall:
+        """(col, row) of the nearest global wall cell, for every cell (indexed as (H, W, 2))."""
+        return NearestWall.of(self.structure)
 
     def level(self, resolution: float, pad: int) -> _Level:
         """The wall likelihood at a coarser resolution (cached: the wide search reuses it)."""
@@ -335,24 +335,42 @@ def _local_maxima(rows: list[tuple[float, float, float, float]], keep: int) -> l
 # --- ICP polish ------------------------------------------------------------------------------
 
 
-def nearest_wall_field(structure: NDArray[np.bool_]) -> tuple[NDArray[np.float32], FloatArray]:
-    """Distance (px) to, and (col, row) of, the nearest structure cell, for every cell."""
-    free = np.where(structure, 0, 255).astype(np.uint8)
-    dist, labels = cv2.distanceTransformWithLabels(
-        free, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    rows, cols = np.nonzero(structure)
-    # Labels of zero pixels are numbered in row-major scan order, starting at 1.
-    lut = np.zeros((len(rows) + 1, 2))
-    lut[1:, 0], lut[1:, 1] = cols, rows
-    return dist, lut[labels]
+class NearestWall:
+    """The (col, row) of the nearest structure cell (5x5 chamfer distance), for every cell.
+
+    Indexed like an (H, W, 2) float array with two integer arrays: ``field[rows, cols]`` is
+    (N, 2). It keeps the distance transform's labels (4 bytes a cell) and a table of the
+    structure cells, and looks cells up on demand, instead of building that array (16 bytes a
+    cell, mostly never read).
+    """
+
+    def __init__(self, labels: NDArray[np.int32], table: FloatArray) -> None:
+        self._labels = labels
+        self._table = table
+        self.shape = (*labels.shape, 2)
+
+    @staticmethod
+    def of(structure: NDArray[np.bool_]) -> NearestWall:
+        free = np.where(structure, 0, 255).astype(np.uint8)
+        _, labels = cv2.distanceTransformWithLabels(
+            free, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        rows, cols = np.nonzero(structure)
+        # Labels of zero pixels are numbered in row-major scan order, starting at 1.
+        table = np.zeros((len(rows) + 1, 2))
+        table[1:, 0], table[1:, 1] = cols, rows
+        return NearestWall(labels, table)
+
+    def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
+        rows, cols = index
+        return np.asarray(self._table[self._labels[rows, cols]])
 
 
 def icp(
     points_slam: FloatArray,
     start: Transform2D,
     grid: Grid,
-    nearest_colrow: FloatArray,
+    nearest_colrow: FloatArray | NearestWall,
     *,
     max_distance_m: float,
     iterations: int = 30,
@@ -585,6 +603,7 @@ def _untrusted(score: float, min_score: float) -> str:
 __all__ = [
     "Alignment",
     "GlobalView",
+    "NearestWall",
     "agreement",
     "align",
     "consistency",

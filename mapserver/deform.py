@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -21,6 +22,9 @@ from numpy.typing import NDArray
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
+
+if TYPE_CHECKING:
+    from mapserver.align import NearestWall
 
 FloatArray = NDArray[np.float64]
 
@@ -77,7 +81,7 @@ def estimate_drift(
     walls_slam: FloatArray,
     nav2_from_slam: Transform2D,
     grid: Grid,
-    nearest_colrow: FloatArray,
+    nearest_colrow: FloatArray | NearestWall,
     *,
     tile_m: float = 6.0,
     max_shift_m: float = 0.4,

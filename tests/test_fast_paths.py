@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mapserver.align import NearestWall
 from mapserver.diff import distance_to, near, offset_distances
 
 
@@ -49,3 +50,27 @@ def test_offset_distances_hold_every_offset_within_reach() -> None:
     border = np.concatenate([reach[0], reach[-1], reach[:, 0], reach[:, -1]])
     assert border.min() > 4.3
     assert not reach.flags.writeable
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_nearest_wall_lookup_is_the_dense_field(seed: int) -> None:
+    structure = _walls(seed, (120, 90), 0.01)
+    free = np.where(structure, 0, 255).astype(np.uint8)
+    dist, labels = cv2.distanceTransformWithLabels(
+        free, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    rows, cols = np.nonzero(structure)
+    table = np.zeros((len(rows) + 1, 2))
+    table[1:, 0], table[1:, 1] = cols, rows
+    dense = table[labels]  # (H, W, 2), what the field used to be
+
+    field = NearestWall.of(structure)
+    assert field.shape == dense.shape
+    rr, cc = np.mgrid[: structure.shape[0], : structure.shape[1]]
+    got = field[rr.ravel(), cc.ravel()]
+    assert np.array_equal(got, dense.reshape(-1, 2))
+    # The cells it names are walls, at the distance the transform measured.
+    named = got.astype(int)
+    assert structure[named[:, 1], named[:, 0]].all()
+    gap = np.hypot(named[:, 0] - cc.ravel(), named[:, 1] - rr.ravel())
+    assert np.allclose(gap, dist.ravel(), atol=0.1 * gap.max() + 0.1)
