@@ -107,33 +107,50 @@ def estimate_drift(
     h, w = nearest_colrow.shape[:2]
     node_i = np.floor((walls_slam[:, 1] - lo[1]) / spacing + 0.5).astype(int)
     node_j = np.floor((walls_slam[:, 0] - lo[0]) / spacing + 0.5).astype(int)
-    for i in range(rows):
-        for j in range(cols):
-            sel = (np.abs(node_i - i) <= 1) & (np.abs(node_j - j) <= 1)
-            if sel.sum() < min_points:
-                continue
-            q0 = base[sel]
-            shift = np.zeros(2)
-            used = 0
-            for k in range(iterations):
-                limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
-                q = q0 + shift
-                px = np.rint(grid.to_pixel(q)).astype(np.int64)
-                inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-                target = np.zeros_like(q)
-                target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
-                r = target - q
-                d = np.sqrt((r**2).sum(axis=1))
-                use = inside & (d <= limit)
-                used = int(use.sum())
-                if used < min_points // 2:
-                    break
-                shift = shift + r[use].mean(axis=0)
-                if np.hypot(*shift) > max_shift_m:
-                    shift *= max_shift_m / np.hypot(*shift)
-            if used >= min_points // 2:
-                shifts[i, j] = shift
-                valid[i, j] = True
+    # All nodes at once: one (node, point) pair for every wall point and each of the 3 x 3
+    # nodes around its nearest one, sorted by node and then point, so that the per-node sums
+    # below add the same numbers in the same order as a loop over the nodes would.
+    nodes, points = [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            i, j = node_i + di, node_j + dj
+            ok = (i >= 0) & (i < rows) & (j >= 0) & (j < cols)
+            nodes.append((i * cols + j)[ok])
+            points.append(np.flatnonzero(ok))
+    node, point = np.concatenate(nodes), np.concatenate(points)
+    order = np.lexsort((point, node))
+    node, point = node[order], point[order]
+    n_nodes = rows * cols
+    active = np.bincount(node, minlength=n_nodes) >= min_points
+    shift = np.zeros((n_nodes, 2))
+    used = np.zeros(n_nodes, np.int64)
+    for k in range(iterations):
+        keep = active[node]
+        node, point = node[keep], point[keep]
+        if len(node) == 0:
+            break
+        limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
+        q = base[point] + shift[node]
+        px = np.rint(grid.to_pixel(q)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        target = np.zeros_like(q)
+        target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
+        r = target - q
+        d = np.sqrt((r**2).sum(axis=1))
+        use = inside & (d <= limit)
+        counted = np.bincount(node[use], minlength=n_nodes)
+        used[active] = counted[active]
+        active &= counted >= min_points // 2
+        sums = np.stack(
+            [np.bincount(node[use], weights=r[use, c], minlength=n_nodes) for c in (0, 1)], 1
+        )
+        step = shift[active] + sums[active] / counted[active][:, None]
+        norm = np.hypot(step[:, 0], step[:, 1])
+        over = norm > max_shift_m
+        step[over] *= (max_shift_m / norm[over])[:, None]
+        shift[active] = step
+    valid = (used >= min_points // 2).reshape(rows, cols)
+    shifts = np.where(valid[:, :, None], shift.reshape(rows, cols, 2), 0.0).astype(np.float32)
     if not valid.any():
         return DriftField(
             float(lo[0]), float(lo[1]), spacing, np.zeros((rows, cols, 2), np.float32)

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
 
+from mapserver import deform
 from mapserver.align import NearestWall
 from mapserver.diff import distance_to, near, offset_distances
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid
 
 
 def _walls(seed: int, shape: tuple[int, int], density: float) -> np.ndarray:
@@ -74,3 +79,86 @@ def test_nearest_wall_lookup_is_the_dense_field(seed: int) -> None:
     assert structure[named[:, 1], named[:, 0]].all()
     gap = np.hypot(named[:, 0] - cc.ravel(), named[:, 1] - rr.ravel())
     assert np.allclose(gap, dist.ravel(), atol=0.1 * gap.max() + 0.1)
+
+
+def _drift_node_by_node(walls_slam, nav2_from_slam, grid, nearest, *, tile_m, max_shift_m):  # type: ignore[no-untyped-def]
+    """estimate_drift's per-node estimates as first written, one node at a time (before the
+    smoothing): the reference for the vectorised version."""
+    min_points, iterations = 40, 12
+    spacing = tile_m / 2.0
+    lo = walls_slam.min(axis=0) - spacing
+    hi = walls_slam.max(axis=0) + spacing
+    cols = max(2, math.ceil((hi[0] - lo[0]) / spacing) + 1)
+    rows = max(2, math.ceil((hi[1] - lo[1]) / spacing) + 1)
+    shifts = np.zeros((rows, cols, 2), np.float32)
+    valid = np.zeros((rows, cols), bool)
+    base = nav2_from_slam.apply(walls_slam)
+    h, w = nearest.shape[:2]
+    node_i = np.floor((walls_slam[:, 1] - lo[1]) / spacing + 0.5).astype(int)
+    node_j = np.floor((walls_slam[:, 0] - lo[0]) / spacing + 0.5).astype(int)
+    for i in range(rows):
+        for j in range(cols):
+            sel = (np.abs(node_i - i) <= 1) & (np.abs(node_j - j) <= 1)
+            if sel.sum() < min_points:
+                continue
+            q0 = base[sel]
+            shift = np.zeros(2)
+            used = 0
+            for k in range(iterations):
+                limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
+                q = q0 + shift
+                px = np.rint(grid.to_pixel(q)).astype(np.int64)
+                inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+                target = np.zeros_like(q)
+                target[inside] = grid.to_world(nearest[px[inside, 1], px[inside, 0]])
+                r = target - q
+                d = np.sqrt((r**2).sum(axis=1))
+                use = inside & (d <= limit)
+                used = int(use.sum())
+                if used < min_points // 2:
+                    break
+                shift = shift + r[use].mean(axis=0)
+                if np.hypot(*shift) > max_shift_m:
+                    shift *= max_shift_m / np.hypot(*shift)
+            if used >= min_points // 2:
+                shifts[i, j] = shift
+                valid[i, j] = True
+    return shifts, valid
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_vectorised_drift_estimate_is_the_node_by_node_one(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A room of walls, seen with a bend: the local walls are the global ones, shifted more
+    # the further along x they lie.
+    rng = np.random.default_rng(seed)
+    grid = Grid(0.0, 0.0, 0.05, 600, 400)
+    structure = np.zeros(grid.shape, bool)
+    structure[40, 20:580] = structure[360, 20:580] = True
+    structure[40:360, 20] = structure[40:360, 580] = True
+    for _ in range(30):
+        r, c = rng.integers(60, 340), rng.integers(40, 560)
+        structure[r : r + 8, c : c + 8] = True
+    rows, cols = np.nonzero(structure)
+    walls = grid.to_world(np.stack([cols, rows], axis=1))
+    walls = walls + np.stack([0.004 * walls[:, 0], 0.01 * walls[:, 0] - 0.1], axis=1)
+    walls = walls[rng.random(len(walls)) < 0.8]
+    nearest = NearestWall.of(structure)
+    transform = Transform2D(0.01, -0.05, 0.08)
+
+    captured = {}
+    real_fill = deform._fill_missing
+
+    def capture(values, valid):  # type: ignore[no-untyped-def]
+        captured["shifts"], captured["valid"] = values.copy(), valid.copy()
+        return real_fill(values, valid)
+
+    monkeypatch.setattr(deform, "_fill_missing", capture)
+    deform.estimate_drift(walls, transform, grid, nearest, tile_m=6.0, max_shift_m=0.8)
+    shifts, valid = _drift_node_by_node(
+        walls, transform, grid, nearest, tile_m=6.0, max_shift_m=0.8
+    )
+    assert valid.any() and not valid.all()
+    assert np.array_equal(captured["valid"], valid)
+    assert np.array_equal(captured["shifts"], shifts)
