@@ -115,6 +115,23 @@ def footprint(local: OccupancyMap) -> tuple[FloatArray, float]:
     return centre, radius
 
 
+def _farthest_known_m(local: OccupancyMap, centre: FloatArray) -> float:
+    """Largest distance (m) from ``centre`` (slam frame) to the centre of a known cell.
+
+    The farthest cell is a corner of the known cells' convex hull, so the first and last known
+    cell of every row are enough (the same number as over all cells, without listing them).
+    """
+    known = local.state != UNKNOWN
+    rows = np.flatnonzero(known.any(axis=1))
+    if len(rows) == 0:
+        raise ValueError("the local map has no known cells")
+    first = known[rows].argmax(axis=1)
+    last = known.shape[1] - 1 - known[rows, ::-1].argmax(axis=1)
+    x, y = local.pixel_to_world(np.concatenate([first, last]), np.concatenate([rows, rows]))
+    pts = np.stack([x, y], axis=1)
+    return float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max())
+
+
 def make_view(
     global_map: OccupancyMap,
     local: OccupancyMap,
@@ -135,8 +152,7 @@ def make_view(
         centre, radius = footprint(local)
     else:
         centre = np.asarray(pivot_slam, dtype=float)
-        radius = float(np.sqrt(((known_points(local) - centre) ** 2).sum(axis=1)).max())
-        radius += local.resolution
+        radius = _farthest_known_m(local, centre) + local.resolution
     cx, cy = prior.apply(centre)
     half = radius + search_xy_m + margin_m
     resolution = min(global_map.resolution, local.resolution)
