@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -16,6 +17,7 @@ from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED
 
 BGR = tuple[int, int, int]
+T = TypeVar("T", bound=np.generic)
 ADDED: BGR = (0, 0, 230)
 REMOVED: BGR = (230, 60, 0)
 LOCAL: BGR = (40, 150, 40)
@@ -48,12 +50,12 @@ def window_for(
 ) -> Window:
     """The ROI's bounding box plus ``margin_m``, clipped to the grid, with a display scale that
     makes small areas legible and large ones small enough."""
-    rows, cols = np.nonzero(roi_mask)
-    if len(rows) == 0:
-        rows, cols = np.array([0, grid.height - 1]), np.array([0, grid.width - 1])
+    x, y, w, h = cv2.boundingRect(roi_mask.view(np.uint8))
+    if w == 0:
+        x, y, w, h = 0, 0, grid.width, grid.height
     m = round(margin_m / grid.resolution)
-    r0, r1 = max(int(rows.min()) - m, 0), min(int(rows.max()) + m + 1, grid.height)
-    c0, c1 = max(int(cols.min()) - m, 0), min(int(cols.max()) + m + 1, grid.width)
+    r0, r1 = max(y - m, 0), min(y + h + m, grid.height)
+    c0, c1 = max(x - m, 0), min(x + w + m, grid.width)
     side = max(r1 - r0, c1 - c0)
     scale = 1.0
     if side > max_side_px:
@@ -63,16 +65,31 @@ def window_for(
     return Window(r0, c0, r1 - r0, c1 - c0, scale)
 
 
-def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
-    crop = image[window.row0 : window.row0 + window.rows, window.col0 : window.col0 + window.cols]
+def _crop(image: NDArray[T], window: Window) -> NDArray[T]:
+    return image[window.row0 : window.row0 + window.rows, window.col0 : window.col0 + window.cols]
+
+
+def _resized(crop: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
     size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
     interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
     return cv2.resize(crop, size, interpolation=interpolation)
 
 
-def _mask_scaled(mask: NDArray[np.bool_], window: Window) -> NDArray[np.bool_]:
-    # Max-pool when shrinking, so that thin walls and small differences stay visible.
-    return _scaled(mask.astype(np.uint8) * 255, window) > 0
+def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
+    return _resized(_crop(image, window), window)
+
+
+def _mask_scaled(mask_crop: NDArray[np.bool_], window: Window) -> NDArray[np.bool_]:
+    """A mask already cropped to the window, scaled. Max-pools when shrinking, so that thin
+    walls and small differences stay visible."""
+    return _resized(mask_crop.astype(np.uint8) * 255, window) > 0
+
+
+def _greys(state: NDArray[np.uint8], free: int, occupied: int, unknown: int) -> NDArray[np.uint8]:
+    """A BGR image of cell states in three greys (one table lookup, not a pass per state)."""
+    table = np.full(256, unknown, np.uint8)
+    table[FREE], table[OCCUPIED] = free, occupied
+    return cv2.cvtColor(cv2.LUT(state, table), cv2.COLOR_GRAY2BGR)
 
 
 def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:
@@ -135,11 +152,8 @@ def overlay(
 ) -> NDArray[np.uint8]:
     """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
     the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
-    g = _scaled(global_state, window)
-    image = np.full((*g.shape, 3), 205, np.uint8)
-    image[g == FREE] = 255
-    image[g == OCCUPIED] = 60
-    local_occ = _mask_scaled(local_state == OCCUPIED, window)
+    image = _greys(_scaled(global_state, window), 255, 60, 205)
+    local_occ = _mask_scaled(_crop(local_state, window) == OCCUPIED, window)
     image[local_occ] = LOCAL
     if roi_polygon:
         pts = window.to_image(grid, np.array(roi_polygon))
@@ -174,11 +188,9 @@ def diff_image(
     differences: list[Difference],
 ) -> NDArray[np.uint8]:
     """The filtered difference mask (added red, removed blue) over faint global walls."""
-    g = _scaled(global_state, window)
-    image = np.full((*g.shape, 3), 255, np.uint8)
-    image[g == OCCUPIED] = 215
-    image[_mask_scaled(added, window)] = ADDED
-    image[_mask_scaled(removed, window)] = REMOVED
+    image = _greys(_scaled(global_state, window), 255, 215, 255)
+    image[_mask_scaled(_crop(added, window), window)] = ADDED
+    image[_mask_scaled(_crop(removed, window), window)] = REMOVED
     _boxes(image, grid, window, differences)
     _legend(image, [("added", ADDED), ("removed", REMOVED)])
     return image
