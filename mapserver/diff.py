@@ -109,31 +109,56 @@ def raw_differences(
             f"{roi.shape}"
         )
     tol_px = tolerance_m / resolution
-    g_occ = global_state == OCCUPIED
-    l_occ = local_state == OCCUPIED
-    g_walls = g_occ if global_walls is None else (g_occ | global_walls)
+    removed_tol_px = (
+        tolerance_m if removed_tolerance_m is None else removed_tolerance_m
+    ) / resolution
+    added_full = np.zeros(roi.shape, bool)
+    removed_full = np.zeros(roi.shape, bool)
+    # Only the ROI's bounding box can differ, and only walls within the tolerances of it count:
+    # work on that box plus the reach of the tolerances (the same cells, less area).
+    x, y, w, h = cv2.boundingRect(roi.view(np.uint8))
+    if w == 0:
+        return DiffMasks(added_full, removed_full)
+    reach = (offset_distances(tol_px).shape[0] // 2, offset_distances(removed_tol_px).shape[0] // 2)
+    r0, c0 = max(y - max(reach), 0), max(x - max(reach), 0)
+    r1, c1 = min(y + h + max(reach), roi.shape[0]), min(x + w + max(reach), roi.shape[1])
+    box = (slice(r0, r1), slice(c0, c1))
+    g_state, l_state, roi = global_state[box], local_state[box], roi[box]
+    g_occ = g_state == OCCUPIED
+    l_occ = l_state == OCCUPIED
+    g_walls = g_occ if global_walls is None else (g_occ | global_walls[box])
     # ``distance_to(walls) > tol`` as a dilation by the offsets that are not beyond tol (same
     # cells, a fraction of the cost).
-    added = l_occ & (global_state == FREE) & roi
+    added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~near(g_walls, ~(offset_distances(tol_px) > tol_px))
-    removed = g_occ & (local_state == FREE) & roi
+    removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
-        removed_tol_px = (
-            tolerance_m if removed_tolerance_m is None else removed_tolerance_m
-        ) / resolution
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
-    return DiffMasks(added, removed)
+    added_full[box], removed_full[box] = added, removed
+    return DiffMasks(added_full, removed_full)
 
 
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     """``mask`` without its 8-connected components smaller than ``min_pixels``."""
-    if not mask.any():
-        return mask.copy()
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
-    keep[0] = False
-    return keep[labels]
+    out = mask.copy()
+    # Label only the box around the True cells, and clear the small components where they are.
+    x, y, w, h = cv2.boundingRect(out.view(np.uint8))
+    if w == 0:
+        return out
+    box = out[y : y + h, x : x + w]
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(box.view(np.uint8), connectivity=8)
+    small = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < min_pixels) + 1
+    if len(small) > 64:
+        keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
+        keep[0] = False
+        box[...] = keep[labels]
+        return out
+    for k in small:
+        bx, by, bw, bh = stats[k, :4]
+        part = (slice(by, by + bh), slice(bx, bx + bw))
+        box[part][labels[part] == k] = False
+    return out
 
 
 def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:

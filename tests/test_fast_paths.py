@@ -10,7 +10,7 @@ import pytest
 
 from mapserver import deform
 from mapserver.align import NearestWall, _farthest_known_m, known_points
-from mapserver.diff import distance_to, near, offset_distances
+from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
@@ -178,3 +178,70 @@ def test_farthest_known_cell_from_the_row_ends(seed: int) -> None:
     for centre in rng.normal(0.0, 4.0, (10, 2)):
         every = np.sqrt(((known_points(local) - centre) ** 2).sum(axis=1)).max()
         assert _farthest_known_m(local, centre) == every
+
+
+def _plain_differences(g, loc, roi, *, resolution, tolerance_m, removed_tolerance_m, walls):  # type: ignore[no-untyped-def]
+    """raw_differences as first written: whole arrays, distance transforms."""
+    g_occ, l_occ = g == OCCUPIED, loc == OCCUPIED
+    added = l_occ & (g == FREE) & roi & (distance_to(g_occ | walls) > tolerance_m / resolution)
+    removed = g_occ & (loc == FREE) & roi & (distance_to(l_occ) > removed_tolerance_m / resolution)
+    return added, removed
+
+
+def _states(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    return rng.choice(np.array([FREE, OCCUPIED, UNKNOWN], np.uint8), shape, p=[0.7, 0.2, 0.1])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_raw_differences_on_the_roi_box_are_the_plain_ones(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    shape = (90, 130)
+    g, loc = _states(rng, shape), _states(rng, shape)
+    walls = rng.random(shape) < 0.02
+    roi = np.zeros(shape, bool)
+    r, c = rng.integers(0, 60), rng.integers(0, 100)
+    roi[r : r + rng.integers(1, 40), c : c + rng.integers(1, 40)] = True
+    if seed == 0:
+        roi[:] = True
+    for tol, removed_tol in [(0.15, 0.25), (0.1, 0.1), (0.0, 0.3)]:
+        got = raw_differences(
+            g,
+            loc,
+            roi,
+            resolution=0.05,
+            tolerance_m=tol,
+            removed_tolerance_m=removed_tol,
+            global_walls=walls,
+        )
+        added, removed = _plain_differences(
+            g,
+            loc,
+            roi,
+            resolution=0.05,
+            tolerance_m=tol,
+            removed_tolerance_m=removed_tol,
+            walls=walls,
+        )
+        assert np.array_equal(got.added, added)
+        assert np.array_equal(got.removed, removed)
+    empty = raw_differences(g, loc, np.zeros(shape, bool), resolution=0.05, tolerance_m=0.1)
+    assert not empty.added.any() and not empty.removed.any()
+
+
+@pytest.mark.parametrize("density", [0.0, 0.002, 0.005, 0.05, 0.3])
+@pytest.mark.parametrize("min_pixels", [1, 4, 9])
+def test_drop_small_is_the_plain_one(density: float, min_pixels: int) -> None:
+    mask = np.random.default_rng(7).random((120, 150)) < density
+    mask[5:9, 5:20] = density > 0  # and one component that is never small
+    before = mask.copy()
+    if mask.any():
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(
+            mask.astype(np.uint8), connectivity=8
+        )
+        keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
+        keep[0] = False
+        expected = keep[labels]
+    else:
+        expected = mask
+    assert np.array_equal(drop_small(mask, min_pixels=min_pixels), expected)
+    assert np.array_equal(mask, before)
