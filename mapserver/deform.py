@@ -204,20 +204,26 @@ def warp_local(
     if drift is None:
         return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
     s = step_px
+    out = np.full(grid.shape, UNKNOWN, np.uint8)
+    box = _landing_box(local, grid, nav2_from_slam, drift, step_px=s)
+    if box is None:
+        return out
+    r0, r1, c0, c1 = box
     # Nodes at the positions cv2.resize samples for an upscale by s, starting one step before
-    # the grid so that its border replication never reaches a kept pixel.
-    n_cols = math.ceil(grid.width / s) + 2
-    n_rows = math.ceil(grid.height / s) + 2
-    node_c = (np.arange(n_cols) + 0.5) * s - 0.5 - s
-    node_r = (np.arange(n_rows) + 0.5) * s - 0.5 - s
+    # the box so that its border replication never reaches a kept pixel. The box starts on a
+    # multiple of s, so these are the nodes (and the pixels) of the whole grid's warp.
+    n_cols = math.ceil((c1 - c0) / s) + 2
+    n_rows = math.ceil((r1 - r0) / s) + 2
+    node_c = (np.arange(n_cols) + 0.5) * s - 0.5 - s + c0
+    node_r = (np.arange(n_rows) + 0.5) * s - 0.5 - s + r0
     cc, rr = np.meshgrid(node_c, node_r)
     u, v = _source_coords(cc, rr, local, grid, nav2_from_slam, drift)
     size = (n_cols * s, n_rows * s)
     full_u = cv2.resize(u.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
     full_v = cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
-    full_u = np.ascontiguousarray(full_u[s : s + grid.height, s : s + grid.width])
-    full_v = np.ascontiguousarray(full_v[s : s + grid.height, s : s + grid.width])
-    return cv2.remap(
+    full_u = np.ascontiguousarray(full_u[s : s + r1 - r0, s : s + c1 - c0])
+    full_v = np.ascontiguousarray(full_v[s : s + r1 - r0, s : s + c1 - c0])
+    out[r0:r1, c0:c1] = cv2.remap(
         local.state,
         full_u,
         full_v,
@@ -225,3 +231,38 @@ def warp_local(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=UNKNOWN,
     )
+    return out
+
+
+def _landing_box(
+    local: OccupancyMap,
+    grid: Grid,
+    nav2_from_slam: Transform2D,
+    drift: DriftField,
+    *,
+    step_px: int,
+) -> tuple[int, int, int, int] | None:
+    """``(row0, row1, col0, col1)`` of the grid cells that the local map's known cells can land
+    on (with the drift, and a margin), starting on multiples of ``step_px``; None if none.
+
+    Every other cell of the warp samples an unknown cell or the outside: it stays unknown.
+    Only a power-of-two step keeps the nodes' interpolation weights exact when the box moves
+    the nodes' origin, so any other step gets the whole grid.
+    """
+    if step_px & (step_px - 1):
+        return 0, grid.height, 0, grid.width
+    x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
+    if w == 0:
+        return None
+    cols = np.array([x - 1.0, x + w, x - 1.0, x + w])
+    rows = np.array([y - 1.0, y - 1.0, y + h, y + h])
+    sx, sy = local.pixel_to_world(cols, rows)
+    corners = grid.to_pixel(nav2_from_slam.apply(np.stack([sx, sy], axis=1)))
+    margin = drift.max_shift_m() / grid.resolution + 2.0
+    c0, r0 = np.floor(corners.min(axis=0) - margin).astype(int)
+    c1, r1 = np.ceil(corners.max(axis=0) + margin).astype(int) + 1
+    c0, r0 = max(c0 - c0 % step_px, 0), max(r0 - r0 % step_px, 0)
+    c1, r1 = min(c1, grid.width), min(r1, grid.height)
+    if c1 <= c0 or r1 <= r0:
+        return None
+    return int(r0), int(r1), int(c0), int(c1)

@@ -245,3 +245,35 @@ def test_drop_small_is_the_plain_one(density: float, min_pixels: int) -> None:
         expected = mask
     assert np.array_equal(drop_small(mask, min_pixels=min_pixels), expected)
     assert np.array_equal(mask, before)
+
+
+def _warp_whole_grid(local, grid, transform, drift, s=8):  # type: ignore[no-untyped-def]
+    """warp_local as first written: nodes over the whole grid."""
+    n_cols, n_rows = math.ceil(grid.width / s) + 2, math.ceil(grid.height / s) + 2
+    cc, rr = np.meshgrid(
+        (np.arange(n_cols) + 0.5) * s - 0.5 - s, (np.arange(n_rows) + 0.5) * s - 0.5 - s
+    )
+    u, v = deform._source_coords(cc, rr, local, grid, transform, drift)
+    size = (n_cols * s, n_rows * s)
+    fu = cv2.resize(u.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    fv = cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    fu = np.ascontiguousarray(fu[s : s + grid.height, s : s + grid.width])
+    fv = np.ascontiguousarray(fv[s : s + grid.height, s : s + grid.width])
+    return cv2.remap(
+        local.state, fu, fv, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=UNKNOWN
+    )
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_drift_warp_of_the_landing_box_is_the_whole_grid_one(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    state = _states(rng, (140, 170))
+    state[:, : rng.integers(0, 60)] = UNKNOWN  # the known part is off-centre
+    local = from_states(state, 0.05, (rng.uniform(-3, 3), rng.uniform(-3, 3), 0.0))
+    grid = Grid(-12.3, -11.1, 0.05, 501, 467)
+    transform = Transform2D(rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-2, 2))
+    shifts = rng.normal(0.0, 0.3, (5, 6, 2)).astype(np.float32)
+    drift = deform.DriftField(-4.0, -4.0, 3.0, shifts)
+    got = deform.warp_local(local, grid, transform, drift)
+    assert (got != UNKNOWN).any()
+    assert np.array_equal(got, _warp_whole_grid(local, grid, transform, drift))
