@@ -190,10 +190,9 @@ def make_view(
 
 def _distance_field(structure: NDArray[np.bool_]) -> NDArray[np.float32]:
     """Distance in pixels from every cell to the nearest structure cell."""
-    free = np.where(structure, 0, 255).astype(np.uint8)
     if not structure.any():
         return np.full(structure.shape, 1e6, np.float32)
-    return cv2.distanceTransform(free, cv2.DIST_L2, 5)
+    return cv2.distanceTransform((~structure).view(np.uint8), cv2.DIST_L2, 5)
 
 
 def _lookup(image: NDArray[np.generic], grid: Grid, xy: FloatArray, fill: float) -> FloatArray:
@@ -235,7 +234,14 @@ def consistency(
     saw empty.
     """
     local_state = resample(local.state, Grid.of_map(local), view.grid, nav2_from_slam)
-    walls = view.structure & (local_state != UNKNOWN)
+    res = view.grid.resolution
+    reach = offset_distances(tolerance_m / res)
+    # Only the box around the local map's known cells (and the tolerance's reach) counts.
+    x, y, w, h = cv2.boundingRect((local_state != UNKNOWN).view(np.uint8))
+    k = reach.shape[0] // 2
+    box = (slice(max(y - k, 0), y + h + k), slice(max(x - k, 0), x + w + k))
+    local_state = local_state[box]
+    walls = view.structure[box] & (local_state != UNKNOWN)
     n = int(np.count_nonzero(walls))
     if n == 0:
         return 0.0
@@ -245,8 +251,6 @@ def consistency(
         if local_walls.any():
             # "No local wall within tolerance" as a dilation: the same cells as thresholding
             # the distance transform, several times cheaper (see diff.offset_distances).
-            res = view.grid.resolution
-            reach = offset_distances(tolerance_m / res)
             seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
     return 1.0 - float(np.count_nonzero(seen_free)) / n
 
@@ -367,14 +371,14 @@ class NearestWall:
 
     @staticmethod
     def of(structure: NDArray[np.bool_]) -> NearestWall:
-        free = np.where(structure, 0, 255).astype(np.uint8)
         _, labels = cv2.distanceTransformWithLabels(
-            free, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+            (~structure).view(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
         )
-        rows, cols = np.nonzero(structure)
         # Labels of zero pixels are numbered in row-major scan order, starting at 1.
-        table = np.zeros((len(rows) + 1, 2))
-        table[1:, 0], table[1:, 1] = cols, rows
+        cells = cv2.findNonZero(structure.view(np.uint8))
+        table = np.zeros(((0 if cells is None else len(cells)) + 1, 2))
+        if cells is not None:
+            table[1:] = cells.reshape(-1, 2)  # (col, row), row-major as the labels
         return NearestWall(labels, table)
 
     def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:

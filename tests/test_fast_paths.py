@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from mapserver import deform
-from mapserver.align import NearestWall, _farthest_known_m, known_points
+from mapserver.align import GlobalView, NearestWall, _farthest_known_m, consistency, known_points
 from mapserver.cluster import cluster_mask, dbscan_pixels, neighbour_offsets
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid
+from mapserver.grid import Grid, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 
 
@@ -311,3 +311,32 @@ def test_pixels_exactly_eps_apart_are_neighbours() -> None:
     found = cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=2)
     assert len(found) == 1 and found[0].pixels == 2
     assert cluster_mask(mask, grid, "added", eps_m=0.29, min_samples=2) == []
+
+
+def _plain_consistency(local, transform, view, tolerance_m):  # type: ignore[no-untyped-def]
+    """consistency() as first written: the whole view, a distance transform."""
+    warped = resample(local.state, Grid.of_map(local), view.grid, transform)
+    walls = view.structure & (warped != UNKNOWN)
+    if not walls.any():
+        return 0.0
+    seen_free = walls & (warped == FREE)
+    local_walls = warped == OCCUPIED
+    if seen_free.any() and local_walls.any():
+        seen_free &= distance_to(local_walls) * view.grid.resolution > tolerance_m
+    return 1.0 - float(seen_free.sum()) / int(walls.sum())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_consistency_on_the_local_box_is_the_plain_one(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    state = _states(rng, (90, 110))
+    state[: rng.integers(0, 40)] = UNKNOWN
+    local = from_states(state, 0.05, (0.0, 0.0, 0.0))
+    grid = Grid(-3.0, -4.0, 0.05, 260, 240)
+    structure = rng.random(grid.shape) < 0.1
+    view = GlobalView(grid, np.full(grid.shape, FREE, np.uint8), structure)
+    for _ in range(4):
+        transform = Transform2D(rng.uniform(-3, 3), rng.uniform(-2, 4), rng.uniform(-2, 4))
+        for tolerance_m in (0.1, 0.2):
+            expected = _plain_consistency(local, transform, view, tolerance_m)
+            assert consistency(local, transform, view, tolerance_m=tolerance_m) == expected
