@@ -13,18 +13,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.align import NearestWall
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
-
-if TYPE_CHECKING:
-    from mapserver.align import NearestWall
 
 FloatArray = NDArray[np.float64]
 
@@ -122,27 +119,42 @@ def estimate_drift(
     node, point = node[order], point[order]
     n_nodes = rows * cols
     active = np.bincount(node, minlength=n_nodes) >= min_points
+    if isinstance(nearest_colrow, NearestWall):
+        in_metres = nearest_colrow.in_metres(grid)
+
+        def nearest_xy(r: NDArray[np.intp], c: NDArray[np.intp]) -> FloatArray:
+            return in_metres[r, c]
+
+    else:
+
+        def nearest_xy(r: NDArray[np.intp], c: NDArray[np.intp]) -> FloatArray:
+            return grid.to_world(nearest_colrow[r, c])
+
     shift = np.zeros((n_nodes, 2))
     used = np.zeros(n_nodes, np.int64)
+    bx, by = base[:, 0].copy(), base[:, 1].copy()
     for k in range(iterations):
         keep = active[node]
         node, point = node[keep], point[keep]
         if len(node) == 0:
             break
         limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
-        q = base[point] + shift[node]
-        px = np.rint(grid.to_pixel(q)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        target = np.zeros_like(q)
-        target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
-        r = target - q
-        d = np.sqrt((r**2).sum(axis=1))
-        use = inside & (d <= limit)
-        counted = np.bincount(node[use], minlength=n_nodes)
+        qx = bx[point] + shift[node, 0]
+        qy = by[point] + shift[node, 1]
+        # grid.to_pixel, by coordinate; cells outside the grid are looked up clipped and never
+        # used.
+        pc = np.rint((qx - grid.x0) / grid.resolution - 0.5).astype(np.int64)
+        pr = np.rint(grid.height - (qy - grid.y0) / grid.resolution - 0.5).astype(np.int64)
+        inside = (pc >= 0) & (pc < w) & (pr >= 0) & (pr < h)
+        target = nearest_xy(np.clip(pr, 0, h - 1), np.clip(pc, 0, w - 1))
+        rx, ry = target[:, 0] - qx, target[:, 1] - qy
+        use = inside & (np.sqrt(rx**2 + ry**2) <= limit)
+        node_used = node[use]
+        counted = np.bincount(node_used, minlength=n_nodes)
         used[active] = counted[active]
         active &= counted >= min_points // 2
         sums = np.stack(
-            [np.bincount(node[use], weights=r[use, c], minlength=n_nodes) for c in (0, 1)], 1
+            [np.bincount(node_used, weights=v[use], minlength=n_nodes) for v in (rx, ry)], 1
         )
         step = shift[active] + sums[active] / counted[active][:, None]
         norm = np.hypot(step[:, 0], step[:, 1])
