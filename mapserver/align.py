@@ -13,6 +13,7 @@ Arrays are indexed ``[row, col]``; points are ``(N, 2)`` arrays of ``(x, y)`` me
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -387,8 +388,22 @@ class NearestWall:
 
     def in_metres(self, grid: Grid) -> NearestWall:
         """The same field giving the nearest wall cell's centre (x, y) on ``grid`` instead of
-        its (col, row): ``grid.to_world`` done once per wall cell, not once per lookup."""
-        return NearestWall(self._labels, grid.to_world(self._table))
+        its (col, row): ``grid.to_world`` done once per wall cell (and kept), not per lookup."""
+        cache: dict[Grid, NearestWall] = self.__dict__.setdefault("_in_metres", {})
+        if grid not in cache:
+            cache[grid] = NearestWall(self._labels, grid.to_world(self._table))
+        return cache[grid]
+
+
+def nearest_wall_m(
+    nearest_colrow: FloatArray | NearestWall, grid: Grid
+) -> Callable[[NDArray[np.intp], NDArray[np.intp]], FloatArray]:
+    """``(rows, cols) -> grid.to_world(nearest_colrow[rows, cols])``: (N, 2) metres of the
+    nearest wall cells, converted once per wall cell when the field is a :class:`NearestWall`."""
+    if isinstance(nearest_colrow, NearestWall):
+        in_metres = nearest_colrow.in_metres(grid)
+        return lambda rows, cols: in_metres[rows, cols]
+    return lambda rows, cols: grid.to_world(nearest_colrow[rows, cols])
 
 
 def icp(
@@ -408,13 +423,14 @@ def icp(
     """
     transform = start
     h, w = nearest_colrow.shape[:2]
+    lookup = nearest_wall_m(nearest_colrow, grid)
     for k in range(iterations):
         limit = max_distance_m * (1.0 - 0.66 * k / max(iterations - 1, 1))
         q = transform.apply(points_slam)
         px = np.rint(grid.to_pixel(q)).astype(np.int64)
         inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         target = np.zeros_like(q)
-        target[inside] = grid.to_world(nearest_colrow[px[inside, 1], px[inside, 0]])
+        target[inside] = lookup(px[inside, 1], px[inside, 0])
         d = np.sqrt(((q - target) ** 2).sum(axis=1))
         use = inside & (d <= limit)
         if use.sum() < 10:

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.align import NearestWall
+from mapserver.align import NearestWall, nearest_wall_m
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
@@ -119,17 +119,7 @@ def estimate_drift(
     node, point = node[order], point[order]
     n_nodes = rows * cols
     active = np.bincount(node, minlength=n_nodes) >= min_points
-    if isinstance(nearest_colrow, NearestWall):
-        in_metres = nearest_colrow.in_metres(grid)
-
-        def nearest_xy(r: NDArray[np.intp], c: NDArray[np.intp]) -> FloatArray:
-            return in_metres[r, c]
-
-    else:
-
-        def nearest_xy(r: NDArray[np.intp], c: NDArray[np.intp]) -> FloatArray:
-            return grid.to_world(nearest_colrow[r, c])
-
+    nearest_xy = nearest_wall_m(nearest_colrow, grid)
     shift = np.zeros((n_nodes, 2))
     used = np.zeros(n_nodes, np.int64)
     bx, by = base[:, 0].copy(), base[:, 1].copy()
