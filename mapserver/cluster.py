@@ -110,9 +110,9 @@ def dbscan_pixels(
     if n == 0:
         return labels
     k = int(np.abs(neighbours).max())
-    # Pixels on a padded box around them, so that every neighbour lookup is inside.
-    r = rows - rows.min() + k
-    c = cols - cols.min() + k
+    # Pixels on a padded box around them, so that every neighbour lookup is inside, with wide
+    # empty bands squeezed out: scattered differences need a small box, not the whole view.
+    r, c = _squeezed(rows, k), _squeezed(cols, k)
     shape = (int(r.max()) + k + 1, int(c.max()) + k + 1)
     present = np.zeros(shape, np.uint8)
     present[r, c] = 1
@@ -170,6 +170,15 @@ def dbscan_pixels(
         reached = best < none
         labels[border[reached]] = best[reached] - 1
     return labels
+
+
+def _squeezed(values: IntArray, k: int) -> IntArray:
+    """``values`` moved to ``k`` and up, with every gap between them wider than ``2 k + 1``
+    narrowed to that: values up to ``k`` apart keep their difference, values further apart stay
+    further apart, and nothing else ever lands within ``k`` of a value."""
+    distinct, index = np.unique(values, return_inverse=True)
+    gaps = np.minimum(np.diff(distinct), 2 * k + 1)
+    return np.asarray(np.concatenate([[0], np.cumsum(gaps)])[index] + k, dtype=np.intp)
 
 
 def _smallest_connected(n: int, edges: NDArray[np.integer]) -> IntArray:
