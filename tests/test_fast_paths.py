@@ -340,3 +340,14 @@ def test_consistency_on_the_local_box_is_the_plain_one(seed: int) -> None:
         for tolerance_m in (0.1, 0.2):
             expected = _plain_consistency(local, transform, view, tolerance_m)
             assert consistency(local, transform, view, tolerance_m=tolerance_m) == expected
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("tolerance_m", [0.1, 0.15, 0.0])
+def test_near_walls_is_the_thresholded_distance_field(seed: int, tolerance_m: float) -> None:
+    grid = Grid(0.0, 0.0, 0.05, 130, 110)
+    structure = _walls(seed, grid.shape, 0.01)
+    view = GlobalView(grid, np.full(grid.shape, FREE, np.uint8), structure)
+    # As agreement() reads the distance field: float32 values in a float64 array.
+    expected = view.distance_px.astype(np.float64) * grid.resolution <= tolerance_m
+    assert np.array_equal(view.near_walls(tolerance_m), expected)
