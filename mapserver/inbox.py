@@ -158,12 +158,11 @@ def check_entry(path: Path) -> BundleFiles:
             resolved = item.resolve()
             if os.path.isabs(target) or (resolved != root and root not in resolved.parents):
                 raise BundleError(
-                    f"symbolic link '{rel}' -> '{target}' points outside the bundle",
-                    file=f"{name}/{rel}",
+                    f"symbolic link to '{target}' points outside the bundle", file=rel
                 )
             mode = resolved.stat().st_mode if resolved.exists() else stat.S_IFREG
         if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-            raise BundleError("not a regular file or directory", file=f"{name}/{rel}")
+            raise BundleError("not a regular file or directory", file=rel)
     return check_bundle_files(path)
 
 

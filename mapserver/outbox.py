@@ -405,12 +405,14 @@ class Store:
 
     def reject(self, name: str, bundle_id: str, stage: str, reason: str) -> Path:
         """Move inbox entry ``name`` to ``failed/<bundle_id>/`` with error.yaml (via .taken)."""
+        reason = _within(reason, self.inbox / name)
         staged = self._stage_error(bundle_id, stage, reason)
         self._take(name, bundle_id)
         return self._finish_fail(bundle_id, staged)
 
     def fail(self, bundle_id: str, stage: str, reason: str) -> Path:
         """Move ``.taken/<bundle_id>`` to ``failed/<bundle_id>/`` with error.yaml."""
+        reason = _within(reason, self.taken / bundle_id)
         staged = self._stage_error(bundle_id, stage, reason)
         return self._finish_fail(bundle_id, staged)
 
@@ -448,6 +450,14 @@ class Store:
             if not os.path.lexists(target / name):
                 _rename(staged, target / name)
                 return
+
+
+def _within(reason: str, bundle: Path) -> str:
+    """``reason`` with the bundle's path left out of the file names it gives: error.yaml sits in
+    the bundle's folder, and the folder has moved since."""
+    for form in dict.fromkeys((str(bundle), str(bundle.resolve()))):
+        reason = reason.replace(form + os.sep, "")
+    return reason
 
 
 def _scandir(path: Path) -> Iterator[os.DirEntry[str]]:

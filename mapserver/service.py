@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import select
 import signal
 import threading
 import time
@@ -71,7 +72,42 @@ class WorkDone:
     seconds: float = 0.0
 
 
-def _init_worker(setup: Callable[[], None] | None) -> None:
+def _exit_with(pid: int) -> None:
+    """End this worker when process ``pid`` (the daemon) ends, whatever the way.
+
+    Without it the workers of a daemon killed with -9 wait forever on their task queue: each
+    holds both ends of its pipe, so it never sees EOF (and it keeps the fork server alive too).
+    """
+    try:
+        pidfd: int | None = os.pidfd_open(pid)
+    except ProcessLookupError:
+        os._exit(1)
+    except (AttributeError, OSError):  # no pidfd (old kernel): look once a second
+        pidfd = None
+
+    def watch() -> None:
+        if pidfd is not None:
+            select.select([pidfd], [], [])
+        else:
+            while _alive(pid):
+                time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mapserver-watch-daemon", daemon=True).start()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _init_worker(setup: Callable[[], None] | None, daemon_pid: int) -> None:
+    _exit_with(daemon_pid)
     # Stopping is the parent's business: a Ctrl-C in a terminal reaches the whole process group,
     # and a worker that died of it would look like a crash.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -346,7 +382,7 @@ class Service:
             max_workers=self._workers,
             mp_context=context,
             initializer=_init_worker,
-            initargs=(self._worker_setup,),
+            initargs=(self._worker_setup, os.getpid()),
         )
 
     def _warm_up(self) -> None:

@@ -9,6 +9,7 @@ import os
 import random
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import threading
@@ -94,8 +95,16 @@ def upload(
     else:
         raise ValueError(order)
     for file_name in files:
-        data = (source / file_name).read_bytes()
         temp = target / f".{file_name}.{os.urandom(3).hex()}"
+        if (source / file_name).is_symlink():  # rsync -a copies links and FIFOs as they are
+            os.symlink(os.readlink(source / file_name), temp)
+            os.rename(temp, target / file_name)
+            continue
+        if stat.S_ISFIFO((source / file_name).stat().st_mode):
+            os.mkfifo(temp)
+            os.rename(temp, target / file_name)
+            continue
+        data = (source / file_name).read_bytes()
         with temp.open("wb") as handle:
             handle.write(data[: len(data) // 2])
             handle.flush()
@@ -128,6 +137,8 @@ def digest(path: Path) -> dict[str, str]:
         rel = str(item.relative_to(path))
         if item.is_symlink():
             out[rel] = f"link:{os.readlink(item)}"
+        elif stat.S_ISFIFO(item.lstat().st_mode):
+            out[rel] = "fifo"
         elif item.is_file():
             out[rel] = hashlib.sha256(item.read_bytes()).hexdigest()
     return out
@@ -230,6 +241,14 @@ class Daemon:
     def stop(self, timeout: float = 30) -> int:
         self.process.send_signal(signal.SIGTERM)
         return self.wait_exit(timeout)
+
+    def group_gone(self) -> bool:
+        """Whether no process of the daemon's group (workers, fork server) is left."""
+        try:
+            os.killpg(self.process.pid, 0)
+        except ProcessLookupError:
+            return True
+        return False
 
     def kill_group(self) -> None:
         """kill -9 of the daemon and its workers."""
