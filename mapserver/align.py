@@ -27,6 +27,8 @@ from mapserver.grid import Grid, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
+# cv2.calcHist counts in float32, exact up to 2**24 per call.
+_HIST_CHUNK = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -100,14 +102,27 @@ def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
     they still show where the walls are. Returns a new (H, W) bool array.
     """
     occ = m.occupancy
-    unknown_cells = m.state == UNKNOWN
-    if np.any(unknown_cells):
-        counts = np.bincount(occ[unknown_cells], minlength=256)
-        unknown_level = int(np.argmax(counts))
-    else:
-        unknown_level = 127
+    counts = _histogram_where(occ, m.state == UNKNOWN)
+    unknown_level = int(np.argmax(counts)) if counts.any() else 127
     level = unknown_level + 0.2 * (255 - unknown_level)
-    return (m.state == OCCUPIED) | (occ >= level)
+    # occ >= level for whole numbers occ: an 8-bit comparison, not a float one per cell.
+    return (m.state == OCCUPIED) | (occ >= np.uint8(math.ceil(level)))
+
+
+def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """(256,) int64 counts of the grey levels of the cells where ``mask`` is True, exact
+    (cv2.calcHist counts in float32: at most 2**24 cells a call)."""
+    h, w = grey.shape
+    if w > _HIST_CHUNK:
+        return np.bincount(grey[mask], minlength=256).astype(np.int64)
+    counts = np.zeros(256, np.int64)
+    step = _HIST_CHUNK // max(w, 1)
+    for r in range(0, h, step):
+        part = cv2.calcHist(
+            [grey[r : r + step]], [0], mask[r : r + step].view(np.uint8), [256], [0, 256]
+        )
+        counts += part.reshape(-1).astype(np.int64)
+    return counts
 
 
 def known_points(m: OccupancyMap, *, state: int | None = None) -> FloatArray:
@@ -298,9 +313,15 @@ def _make_level(view: GlobalView, resolution: float, pad: int) -> _Level:
 
 
 def _thin(points: FloatArray, resolution: float) -> FloatArray:
-    """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size)."""
+    """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size):
+    the first point of each cell, in the cloud's order."""
     keys = np.floor(points / resolution).astype(np.int64)
-    _, index = np.unique(keys, axis=0, return_index=True)
+    if len(keys) == 0:
+        return points[:0]
+    # One integer per cell (rows of keys as one number: a 1-D unique, far faster than axis=0).
+    keys -= keys.min(axis=0)
+    cell = keys[:, 0] * (int(keys[:, 1].max()) + 1) + keys[:, 1]
+    _, index = np.unique(cell, return_index=True)
     return points[np.sort(index)]
 
 
