@@ -38,8 +38,15 @@ def _fill(grid: Grid, polygon_xy: NDArray[np.float64]) -> BoolArray:
     return mask.astype(bool)
 
 
-def _outline(mask: BoolArray, grid: Grid, *, simplify_m: float) -> list[tuple[float, float]]:
-    """The outer contour of the largest region of ``mask``, simplified, in metres."""
+def _outline(
+    mask: NDArray[np.bool_] | NDArray[np.uint8],
+    grid: Grid,
+    *,
+    simplify_m: float,
+    offset: tuple[int, int] = (0, 0),
+) -> list[tuple[float, float]]:
+    """The outer contour of the largest region of ``mask``, simplified, in metres. ``mask`` may
+    be a part of the grid whose first cell is ``offset`` = (col, row)."""
     if not mask.any():
         return []
     contours, _ = cv2.findContours(
@@ -47,14 +54,22 @@ def _outline(mask: BoolArray, grid: Grid, *, simplify_m: float) -> list[tuple[fl
     )
     biggest = max(contours, key=cv2.contourArea)
     approx = cv2.approxPolyDP(biggest, simplify_m / grid.resolution, True).reshape(-1, 2)
-    return [(round(float(x), 3), round(float(y), 3)) for x, y in grid.to_world(approx)]
+    return [(round(float(x), 3), round(float(y), 3)) for x, y in grid.to_world(approx + offset)]
 
 
 def observed(local_state: NDArray[np.uint8], grid: Grid) -> Roi:
     """The cells the aligned local map knows; the polygon outlines the largest known region."""
     known = local_state != UNKNOWN
-    closed = cv2.morphologyEx(known.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
-    return Roi("observed", known, _outline(closed.astype(bool), grid, simplify_m=0.25))
+    # The closing and the contour on the box around the known cells (plus more than the
+    # closing's reach): the same outline as over the whole grid.
+    x, y, w, h = cv2.boundingRect(known.view(np.uint8))
+    if w == 0:
+        return Roi("observed", known, [])
+    m = 8
+    c0, r0 = max(x - m, 0), max(y - m, 0)
+    part = known[r0 : y + h + m, c0 : x + w + m].view(np.uint8)
+    closed = cv2.morphologyEx(part, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    return Roi("observed", known, _outline(closed, grid, simplify_m=0.25, offset=(c0, r0)))
 
 
 def box(robot: Pose2D, grid: Grid, *, size_m: float) -> Roi:

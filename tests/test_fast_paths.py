@@ -8,13 +8,22 @@ import cv2
 import numpy as np
 import pytest
 
-from mapserver import deform
-from mapserver.align import GlobalView, NearestWall, _farthest_known_m, consistency, known_points
+from mapserver import deform, roi
+from mapserver.align import (
+    GlobalView,
+    NearestWall,
+    _farthest_known_m,
+    _thin,
+    consistency,
+    known_points,
+    structure_mask,
+)
 from mapserver.cluster import cluster_mask, dbscan_pixels, neighbour_offsets
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
+from mapserver.roi import _outline
 
 
 def _walls(seed: int, shape: tuple[int, int], density: float) -> np.ndarray:
@@ -351,3 +360,43 @@ def test_near_walls_is_the_thresholded_distance_field(seed: int, tolerance_m: fl
     # As agreement() reads the distance field: float32 values in a float64 array.
     expected = view.distance_px.astype(np.float64) * grid.resolution <= tolerance_m
     assert np.array_equal(view.near_walls(tolerance_m), expected)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_observed_roi_outline_on_the_box_is_the_whole_grid_one(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    grid = Grid(-2.0, 3.0, 0.05, 160, 120)
+    state = np.full(grid.shape, UNKNOWN, np.uint8)
+    for _ in range(4):  # known blobs, some at the grid's edge, some with gaps to close
+        r, c = rng.integers(-10, 110), rng.integers(-10, 150)
+        state[max(r, 0) : r + rng.integers(3, 50), max(c, 0) : c + rng.integers(3, 50)] = FREE
+    state[rng.random(grid.shape) < 0.05] = UNKNOWN
+    known = state != UNKNOWN
+    closed = cv2.morphologyEx(known.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    expected = _outline(closed.astype(bool), grid, simplify_m=0.25)
+    got = roi.observed(state, grid)
+    assert got.polygon == expected
+    assert np.array_equal(got.mask, known)
+
+
+def test_thin_keeps_the_first_point_of_every_cell() -> None:
+    rng = np.random.default_rng(3)
+    points = rng.normal(0.0, 3.0, (2000, 2))
+    keys = np.floor(points / 0.3).astype(np.int64)
+    _, index = np.unique(keys, axis=0, return_index=True)
+    assert np.array_equal(_thin(points, 0.3), points[np.sort(index)])
+    assert len(_thin(points[:0], 0.3)) == 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_structure_mask_is_the_plain_rule(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    occupancy = rng.integers(0, 256, (70, 90), dtype=np.uint8)
+    occupancy[rng.random(occupancy.shape) < 0.4] = 127 + seed * 20  # a grey plateau: unknown
+    state = np.where(occupancy > 200, OCCUPIED, np.where(occupancy < 40, FREE, UNKNOWN))
+    m = OccupancyMap(state.astype(np.uint8), occupancy, 0.05, (0.0, 0.0, 0.0))
+    unknown = m.state == UNKNOWN
+    level_grey = int(np.argmax(np.bincount(occupancy[unknown], minlength=256)))
+    level = level_grey + 0.2 * (255 - level_grey)
+    expected = (m.state == OCCUPIED) | (occupancy >= level)
+    assert np.array_equal(structure_mask(m), expected)
