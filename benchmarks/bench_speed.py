@@ -273,6 +273,9 @@ class Runs:
 
     rows: list[dict[str, float]]
     walls: list[float]
+    cpus: list[float]
+    """CPU seconds of this process (all threads) per call: less sensitive than wall time to
+    other work on the machine, and above it when OpenCV runs threads in parallel."""
     result: dict[str, Any]
 
     def stage(self, name: str) -> float:
@@ -289,18 +292,19 @@ class Runs:
 
 
 def run_in_process(bundle: Path, config: Config, *, runs: int, clear_cache: bool) -> Runs:
-    rows, walls = [], []
+    rows, walls, cpus = [], [], []
     result: dict[str, Any] = {}
     for _ in range(runs):
         if clear_cache:
             GLOBAL_MAPS.clear()
         gc.collect()
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         outcome = process_bundle(bundle, config)
         walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu)
         rows.append(dict(outcome.result["timings_ms"]))
         result = outcome.result
-    return Runs(rows, walls, result)
+    return Runs(rows, walls, cpus, result)
 
 
 def score(result: dict[str, Any], truth_path: Path, bundle: Path) -> str:
@@ -320,6 +324,7 @@ def print_stage_table(columns: list[tuple[str, Runs]]) -> None:
     for name in STAGES:
         say(f"  {name:<12}" + "".join(f"{fmt_ms(r.stage(name)):>16}" for _, r in columns))
     say(f"  {'wall':<12}" + "".join(f"{fmt_ms(r.wall):>16}" for _, r in columns))
+    say(f"  {'cpu':<12}" + "".join(f"{fmt_ms(median(r.cpus)):>16}" for _, r in columns))
 
 
 # --------------------------------------------------------------------------------------------
