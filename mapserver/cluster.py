@@ -52,9 +52,12 @@ def cluster_mask(
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_pixels`` or ``min_area_m2`` are dropped, and so is DBSCAN's noise.
     """
-    rows, cols = np.nonzero(mask)
-    if len(rows) == 0:
+    # The True pixels, row-major, found in their bounding box (a difference mask is sparse).
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    if w == 0:
         return []
+    rows, cols = np.nonzero(mask[y : y + h, x : x + w])
+    rows, cols = rows + y, cols + x
     xy = grid.to_world(np.stack([cols, rows], axis=1))
     labels = dbscan_pixels(
         rows, cols, neighbours=neighbour_offsets(eps_m, grid.resolution), min_samples=min_samples
