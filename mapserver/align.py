@@ -66,6 +66,13 @@ class GlobalView:
         """(col, row) of the nearest global wall cell, for every cell (indexed as (H, W, 2))."""
         return NearestWall.of(self.structure)
 
+    def drop_search_fields(self) -> None:
+        """Forget the fields built for alignment and drift (nearest walls, near-wall masks,
+        distances, search levels): the later stages read only ``state`` and ``structure``.
+        Frees their memory (4 bytes a cell and more); they are built again if asked for."""
+        for key in ("nearest_wall", "distance_px", "_near", "_levels"):
+            self.__dict__.pop(key, None)
+
     def level(self, resolution: float, pad: int) -> _Level:
         """The wall likelihood at a coarser resolution (cached: the wide search reuses it)."""
         key = (round(resolution, 9), pad)

@@ -250,6 +250,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         return deform.warp_local(local, grid, transform, field), field
 
     local_state, drift = stages.run("warp", _warp)
+    view.drop_search_fields()
     if drift is not None and drift.max_shift_m() > 0.1:
         log.info("%s: drift corrected, up to %.2f m", bundle_id, drift.max_shift_m())
     region = stages.run(
