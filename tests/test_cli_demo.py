@@ -1,0 +1,58 @@
+"""``mapserver demo``: a real daemon on a demo folder, sample bundles uploaded like rsync."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from daemon_support import make_bundle
+
+from mapserver.cli import SAMPLES
+
+
+def demo(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mapserver.cli", "demo", *args],
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+
+
+def test_demo_processes_the_samples_and_says_where_the_results_are(tmp_path: Path) -> None:
+    samples = tmp_path / "samples"
+    make_bundle(samples / "sample-a", seed=1)
+    make_bundle(samples / "sample-b", seed=2)
+    folder = tmp_path / "demo"
+    for _ in range(2):  # a second run starts over in the same folder
+        done = demo("--dir", str(folder), "--samples", str(samples))
+        assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    for bundle_id in ("sample-a", "sample-b"):
+        assert f"{folder / 'outbox' / bundle_id / 'result.yaml'}" in out
+        assert f"{folder / 'outbox' / bundle_id / 'overlay.png'}" in out
+        assert (folder / "archive" / bundle_id / "bundle.yaml").is_file()
+    assert " added " in out  # one line per difference
+    assert "stopped the daemon (exit code 0)" in out
+    assert "stopped:" in (folder / "mapserver.log").read_text()
+
+
+def test_demo_refuses_a_folder_it_did_not_make(tmp_path: Path) -> None:
+    (tmp_path / "precious.txt").write_text("keep me")
+    samples = tmp_path / "samples"
+    make_bundle(samples / "s", seed=1)
+    done = demo("--dir", str(tmp_path), "--samples", str(samples))
+    assert done.returncode == 1 and "not a demo folder" in done.stderr
+    assert (tmp_path / "precious.txt").read_text() == "keep me"
+
+
+@pytest.mark.skipif(
+    not any(SAMPLES.glob("*/bundle.yaml")), reason="no shipped samples in mapserver/data/samples"
+)
+def test_demo_runs_on_the_shipped_samples(tmp_path: Path) -> None:
+    done = demo("--dir", str(tmp_path / "demo"))
+    assert done.returncode == 0, done.stdout + done.stderr
+    for sample in SAMPLES.glob("*/bundle.yaml"):
+        assert (tmp_path / "demo" / "outbox" / sample.parent.name / "result.yaml").is_file()
