@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -135,7 +136,7 @@ def _read_trajectory(path: Path) -> list[dict[str, float]]:
         data = None
     if isinstance(data, dict) and "trajectory" in data:
         data = data["trajectory"]
-    rows: list[object]
+    rows: list[Any]
     if isinstance(data, list):
         rows = data
     else:
@@ -149,7 +150,7 @@ def _read_trajectory(path: Path) -> list[dict[str, float]]:
         if isinstance(row, dict):
             row = [row.get("x"), row.get("y"), row.get("yaw")]
         try:
-            x, y, yaw = (float(v) for v in row)  # type: ignore[union-attr, arg-type]
+            x, y, yaw = (float(v) for v in row)
         except (TypeError, ValueError):
             raise MapserverError(
                 f"pose {number}: expected x, y, yaw, got {row!r}", file=path, stage="bundle"
@@ -256,8 +257,8 @@ def _prepare_demo_dir(root: Path) -> None:
             shutil.rmtree(root / name, ignore_errors=True)
     root.mkdir(parents=True, exist_ok=True)
     (root / _DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
-    config = {name: name for name in _DEMO_DIRS}
-    config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)  # type: ignore[arg-type]
+    config: dict[str, Any] = {name: name for name in _DEMO_DIRS}
+    config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)
     (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
 
 

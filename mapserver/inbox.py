@@ -260,10 +260,15 @@ class StabilityTracker:
         ]
         return min(deadlines, default=None)
 
-    def poll(self) -> list[Decision]:
-        """The decisions that are due now."""
+    def poll(self, *, budget_s: float | None = None) -> list[Decision]:
+        """The decisions that are due now. With ``budget_s``, stop deciding once that much time
+        has gone (checksums of a large backlog take a while); the rest stay due for the next
+        call."""
         decisions: list[Decision] = []
+        start = self._clock()
         for name in list(self._entries):
+            if budget_s is not None and self._clock() - start >= budget_s:
+                break
             decision = self._decide(name, self._entries[name])
             if decision is not None:
                 del self._entries[name]

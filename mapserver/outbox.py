@@ -173,12 +173,16 @@ def _make_tmp_dir(outbox: Path, bundle_id: str) -> Path:
 def _write_tmp_result(outbox: Path, outcome: Outcome) -> Path:
     """``outbox/.tmp-<id>-<random>/`` with the images, then result.yaml, all fsynced."""
     tmp = _make_tmp_dir(outbox, outcome.bundle_id)
-    for name, data in outcome.images.items():
-        if Path(name).name != name or name.startswith(".") or name == RESULT:
-            raise ValueError(f"image name must be a plain file name, got {name!r}")
-        _write(tmp / name, data)
-    _write(tmp / RESULT, _dump(outcome.result))
-    _fsync_dir(tmp)
+    try:
+        for name, data in outcome.images.items():
+            if Path(name).name != name or name.startswith(".") or name == RESULT:
+                raise ValueError(f"image name must be a plain file name, got {name!r}")
+            _write(tmp / name, data)
+        _write(tmp / RESULT, _dump(outcome.result))
+        _fsync_dir(tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return tmp
 
 
@@ -203,7 +207,8 @@ def write_result(outbox: Path, outcome: Outcome) -> Path:
 
 @dataclass(frozen=True)
 class Allocation:
-    """The id a bundle will keep, and the archived bundle it is a byte-identical copy of, if any."""
+    """The id a bundle will keep, and the bundle (archived, or in hand) it is a byte-identical
+    copy of, if any (``archive/run-7``, ``inbox/.taken/run-7``)."""
 
     bundle_id: str
     duplicate_of: str | None = None
@@ -338,16 +343,20 @@ class Store:
     def allocate(self, name: str) -> Allocation:
         """The id for inbox entry ``name``: the name itself when it is a valid id not yet in use in
         archive/, failed/, outbox/ or in hand; else the first free ``<id>.2``, ``<id>.3``, ...
-        (contract section 3). Also reports an archived bundle that the upload is byte-identical
-        to (a repeated upload)."""
+        (contract section 3). Also reports a bundle, archived or in hand, that the upload is
+        byte-identical to (a repeated upload)."""
         entry = self.inbox / name
         base = name if is_valid_bundle_id(name) else sanitize_id(name)
         duplicate = None
         for n in count(1):
             candidate = base if n == 1 else suffixed(base, n)
-            archived = self.archive_dir / candidate
-            if duplicate is None and archived.is_dir() and same_tree(entry, archived):
-                duplicate = candidate
+            for place, label in (
+                (self.archive_dir, self.archive_dir.name),
+                (self.taken, f"{self.inbox.name}/{TAKEN}"),
+            ):
+                earlier = place / candidate
+                if duplicate is None and earlier.is_dir() and same_tree(entry, earlier):
+                    duplicate = f"{label}/{candidate}"
             if not self._in_use(candidate):
                 return Allocation(candidate, duplicate)
         raise AssertionError("unreachable")  # pragma: no cover
@@ -407,7 +416,11 @@ class Store:
         """Move inbox entry ``name`` to ``failed/<bundle_id>/`` with error.yaml (via .taken)."""
         reason = _within(reason, self.inbox / name)
         staged = self._stage_error(bundle_id, stage, reason)
-        self._take(name, bundle_id)
+        try:
+            self._take(name, bundle_id)
+        except OSError:
+            staged.unlink()
+            raise
         return self._finish_fail(bundle_id, staged)
 
     def fail(self, bundle_id: str, stage: str, reason: str) -> Path:

@@ -152,7 +152,6 @@ class _Job:
 class _Counts:
     results: int = 0
     failed: int = 0
-    recovered: int = 0
 
 
 class Service:
@@ -232,13 +231,13 @@ class Service:
         """Run until stopped; 0 after a requested stop, 1 when the inbox cannot be watched."""
         previous: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                previous[sig] = signal.signal(sig, self._on_signal)
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                previous[signum] = signal.signal(signum, self._on_signal)
         try:
             return self._run()
         finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            for number, handler in previous.items():
+                signal.signal(number, handler)
 
     def _run(self) -> int:
         config = self._config
@@ -246,29 +245,29 @@ class Service:
         now = time.monotonic()
         recovered = self._store.recover()
         self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
-        self._counts.recovered = len(recovered)
         self._pool = self._new_pool()
-        self._warm_up()
-        observer = self._start_observer()
-        code = 0
         try:
-            self._rescan()
-            log.info(
-                "ready: watching %s with the %s observer, %d workers; %d inbox entries waiting, "
-                "%d bundles in hand from before",
-                config.inbox,
-                "polling" if isinstance(observer, PollingObserver) else "native",
-                self._workers,
-                len(self._tracker),
-                len(recovered),
-            )
-            notify("READY=1", self._status())
-            self.ready.set()
-            code = self._loop(observer)
+            self._warm_up()
+            observer = self._start_observer()
+            try:
+                self._rescan()
+                log.info(
+                    "ready: watching %s with the %s observer, %d workers; %d inbox entries "
+                    "waiting, %d bundles in hand from before",
+                    config.inbox,
+                    "polling" if isinstance(observer, PollingObserver) else "native",
+                    self._workers,
+                    len(self._tracker),
+                    len(recovered),
+                )
+                notify("READY=1", self._status())
+                self.ready.set()
+                code = self._loop(observer)
+            finally:
+                notify("STOPPING=1", "STATUS=stopping: finishing the bundles in hand")
+                observer.stop()
+                observer.join()
         finally:
-            notify("STOPPING=1", "STATUS=stopping: finishing the bundles in hand")
-            observer.stop()
-            observer.join()
             self._finish_running()
         log.info(
             "stopped: %d results, %d failed; %d bundles taken and not started (processed at the "
@@ -290,7 +289,8 @@ class Service:
                 self._tracker.touch(name)
             if time.monotonic() >= self._next_rescan:
                 self._rescan()
-            for decision in self._tracker.poll():
+            # Bounded, so that a large backlog does not keep the watchdog waiting.
+            for decision in self._tracker.poll(budget_s=self._ping_every):
                 _guarded(decision.name, self._take, decision)
             self._collect()
             self._dispatch()
@@ -348,8 +348,8 @@ class Service:
                 return
             if allocation.duplicate_of is not None:
                 reason = (
-                    f"a repeated upload: identical to archive/{allocation.duplicate_of}, which was "
-                    "processed already; upload new maps under a new bundle id"
+                    f"a repeated upload: identical to {allocation.duplicate_of}, taken already; "
+                    "upload new maps under a new bundle id"
                 )
                 self._reject(name, bundle_id, "bundle", reason)
                 return
@@ -489,7 +489,7 @@ class Service:
         start = time.perf_counter()
         try:
             result_dir = self._store.publish(outcome)
-        except (OSError, ValueError, TypeError) as error:
+        except Exception as error:  # a full disk, or a result YAML cannot hold
             self._fail(job, "write", f"cannot write the result: {error}")
             return
         published = time.perf_counter()

@@ -219,6 +219,26 @@ def test_a_bundle_that_can_never_be_right_is_rejected_after_settling(tmp_path: P
     assert "bundle.yaml" in decision.reason
 
 
+def test_poll_stops_at_its_time_budget_and_decides_the_rest_next_time(tmp_path: Path) -> None:
+    clock = Clock()
+    seen = []
+
+    def slow_check(path: Path) -> None:
+        seen.append(path.name)
+        clock.now += 0.6  # a checksum of a big bundle
+
+    t = StabilityTracker(
+        tmp_path, settle_seconds=1.0, stale_after_seconds=60.0, clock=clock, check=slow_check
+    )
+    for name in ("a", "b", "c"):
+        (tmp_path / name).mkdir()
+        t.touch(name)
+    clock.now = 101.0
+    first = t.poll(budget_s=1.0)
+    assert [d.name for d in first] == ["a", "b"] and len(t) == 1
+    assert [d.name for d in t.poll(budget_s=1.0)] == ["c"]
+
+
 def test_entries_that_vanish_are_forgotten(tmp_path: Path) -> None:
     clock = Clock()
     t = tracker(tmp_path, clock)

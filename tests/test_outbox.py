@@ -95,7 +95,12 @@ def test_allocate_suffixes_an_id_in_use_and_spots_a_repeated_upload(
     make_bundle(tmp_path / "copy", seed=1)
     os.rename(store.inbox / "run-1", tmp_path / "other")
     os.rename(tmp_path / "copy", store.inbox / "run-1")
-    assert store.allocate("run-1").duplicate_of == "run-1"
+    assert store.allocate("run-1").duplicate_of == "archive/run-1"
+    make_bundle(store.taken / "run-1.4", seed=3)  # being processed: a retry of its upload
+    make_bundle(store.inbox / "run-9", seed=3)
+    assert store.allocate("run-9").duplicate_of is None
+    os.rename(store.inbox / "run-9", store.inbox / "run-1.4")
+    assert store.allocate("run-1.4").duplicate_of == "inbox/.taken/run-1.4"
 
 
 def test_invalid_names_get_a_valid_id() -> None:
