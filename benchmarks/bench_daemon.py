@@ -265,8 +265,11 @@ def main() -> int:
     print(
         f"throughput: {len(archived) / (last - first):.2f} bundles/s from the first upload "
         f"complete to the last result ({last - first:.1f} s, the kill and restart included); "
-        f"offered {args.robots / args.interval if args.interval else float('inf'):.1f}/s by "
-        f"{args.robots} robots"
+        + (
+            f"offered {args.robots / args.interval:.1f}/s by {args.robots} robots"
+            if args.interval
+            else f"{args.robots} robots uploading as fast as they can"
+        )
     )
     if problems:
         print("FAILED:")
