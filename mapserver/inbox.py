@@ -155,7 +155,10 @@ def check_entry(path: Path) -> BundleFiles:
         mode = item.lstat().st_mode
         if stat.S_ISLNK(mode):
             target = os.readlink(item)
-            resolved = item.resolve()
+            try:
+                resolved = item.resolve()
+            except RuntimeError:  # Python 3.11 on a loop; 3.13 raises OSError (ELOOP)
+                raise BundleError("symbolic link loop", file=rel) from None
             if os.path.isabs(target) or (resolved != root and root not in resolved.parents):
                 raise BundleError(
                     f"symbolic link to '{target}' points outside the bundle", file=rel
@@ -302,6 +305,10 @@ class StabilityTracker:
         except OSError as error:
             entry.incomplete = f"{path}: {error.strerror}"
             decision = None
+        except Exception as error:  # a bug must not stop the daemon, nor retry forever
+            log.exception("%s: cannot check it", name)
+            reason = f"cannot check the bundle: {type(error).__name__}: {error}"
+            decision = Rejected(name, "bundle", reason)
         else:
             decision = Ready(name, now - entry.first_seen)
         # The check read the files: trust it only if nothing changed meanwhile.

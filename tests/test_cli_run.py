@@ -5,6 +5,8 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,3 +43,23 @@ def test_run_exits_1_when_bundles_cannot_move_by_rename(
     monkeypatch.setattr(os, "rename", rename)
     assert main(["run", "--config", str(config)]) == 1
     assert "one filesystem" in capsys.readouterr().err
+
+
+def test_log_lines_carry_their_priority_when_stdout_is_the_journal(tmp_path: Path) -> None:
+    out = tmp_path / "out.txt"
+    script = (
+        "import logging; from mapserver.cli import _setup_daemon_logging; "
+        "_setup_daemon_logging('INFO'); log = logging.getLogger('mapserver.x'); "
+        "log.info('run-1: load 1.0 ms'); log.warning('run-1: done: failed')"
+    )
+    for journal in (False, True):
+        with out.open("w") as handle:
+            st = os.fstat(handle.fileno())
+            env = {**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}" if journal else ""}
+            subprocess.run([sys.executable, "-c", script], stdout=handle, env=env, check=True)
+        lines = out.read_text().splitlines()
+        prefix = ("<6>", "<4>") if journal else ("", "")
+        assert lines == [
+            f"{prefix[0]}INFO mapserver.x: run-1: load 1.0 ms",
+            f"{prefix[1]}WARNING mapserver.x: run-1: done: failed",
+        ]

@@ -239,6 +239,23 @@ def test_poll_stops_at_its_time_budget_and_decides_the_rest_next_time(tmp_path: 
     assert [d.name for d in t.poll(budget_s=1.0)] == ["c"]
 
 
+def test_a_check_that_breaks_rejects_the_entry_instead_of_stopping_the_daemon(
+    tmp_path: Path,
+) -> None:
+    def broken(path: Path) -> None:
+        raise KeyError("a bug")
+
+    clock = Clock()
+    t = StabilityTracker(
+        tmp_path, settle_seconds=1.0, stale_after_seconds=60.0, clock=clock, check=broken
+    )
+    (tmp_path / "a").mkdir()
+    t.touch("a")
+    clock.now = 101.0
+    [decision] = t.poll()
+    assert isinstance(decision, Rejected) and "KeyError" in decision.reason
+
+
 def test_entries_that_vanish_are_forgotten(tmp_path: Path) -> None:
     clock = Clock()
     t = tracker(tmp_path, clock)
@@ -264,9 +281,10 @@ def test_entries_that_vanish_are_forgotten(tmp_path: Path) -> None:
         ),
         (lambda b: os.symlink("../../secret", b / "extra"), "outside"),
         (lambda b: os.mkfifo(b / "pipe"), "not a regular file"),
+        (lambda b: os.symlink("loop", b / "loop"), "loop"),
         (lambda b: (b / "bundle.yaml").write_text("{"), "not valid YAML"),
     ],
-    ids=["absolute-symlink", "relative-symlink-escaping", "fifo", "yaml"],
+    ids=["absolute-symlink", "relative-symlink-escaping", "fifo", "symlink-loop", "yaml"],
 )
 def test_check_entry_rejects_unsafe_bundles(tmp_path: Path, make, match: str) -> None:  # type: ignore[no-untyped-def]
     bundle = make_bundle(tmp_path / "inbox" / "run-1")
