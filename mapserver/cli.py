@@ -205,28 +205,34 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
     if out_dir.exists() and any(out_dir.iterdir()):
         raise MapserverError("the output directory exists and is not empty", file=out_dir)
     robot = args.robot or (re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "robot")
-    stamp = args.stamp or _utc_stamp()
+    trajectory = _read_trajectory(args.trajectory) if args.trajectory is not None else None
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
-    files = _copy_map(args.slam_map, out_dir, "slam_map")
-    manifest: dict[str, object] = {
-        "format": 1,
-        "robot": robot,
-        "stamp": stamp,
-        "slam_map": "slam_map.yaml",
-    }
-    if args.nav2_map is not None:
-        files += _copy_map(args.nav2_map, out_dir, "nav2_map")
-        manifest["nav2_map"] = "nav2_map.yaml"
-    manifest["pose"] = {"nav2": args.nav2_pose, "slam": args.slam_pose}
-    if args.trajectory is not None:
-        manifest["trajectory"] = _read_trajectory(args.trajectory)
-    manifest["checksums"] = {name: sha256_file(out_dir / name) for name in files}
-    text = yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None)
-    parse_manifest(text, source=out_dir / MANIFEST)  # refuse to write a manifest we would reject
-    partial = out_dir / f".{MANIFEST}.tmp"
-    partial.write_text(text, encoding="utf-8")
-    os.rename(partial, out_dir / MANIFEST)
-    check_bundle_files(out_dir)
+    try:
+        files = _copy_map(args.slam_map, out_dir, "slam_map")
+        manifest: dict[str, object] = {
+            "format": 1,
+            "robot": robot,
+            "stamp": args.stamp or _utc_stamp(),
+            "slam_map": "slam_map.yaml",
+        }
+        if args.nav2_map is not None:
+            files += _copy_map(args.nav2_map, out_dir, "nav2_map")
+            manifest["nav2_map"] = "nav2_map.yaml"
+        manifest["pose"] = {"nav2": args.nav2_pose, "slam": args.slam_pose}
+        if trajectory is not None:
+            manifest["trajectory"] = trajectory
+        manifest["checksums"] = {name: sha256_file(out_dir / name) for name in files}
+        text = yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None)
+        parse_manifest(text, source=out_dir / MANIFEST)  # refuse a manifest the server rejects
+        partial = out_dir / f".{MANIFEST}.tmp"
+        partial.write_text(text, encoding="utf-8")
+        os.rename(partial, out_dir / MANIFEST)
+        check_bundle_files(out_dir)
+    except BaseException:
+        if created:  # leave nothing half-made behind
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
     where = out_dir.resolve()
     sys.stdout.write(
         f"wrote bundle {bundle_id} in {where} ({len(files) + 1} files)\n"

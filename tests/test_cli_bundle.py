@@ -85,6 +85,8 @@ def test_bundle_reads_a_yaml_trajectory_and_leaves_nav2_map_out(
         ("bad id!", [], "not a valid one"),
         ("taken", [], "not empty"),
         ("b2", ["--trajectory", "route.txt"], "pose 1"),
+        ("b3", ["--robot", "no spaces"], "robot"),
+        ("b4", ["--nav2-map", "missing.yaml"], "missing.yaml"),
     ],
 )
 def test_bundle_refuses_what_the_server_would_reject(
@@ -99,9 +101,10 @@ def test_bundle_refuses_what_the_server_would_reject(
     (tmp_path / "taken" / "x").write_text("x")
     (tmp_path / "route.txt").write_text("0 0\n")
     args = ["--slam-map", str(maps[0]), "--nav2-pose", "1,2,0", "--slam-pose", "0,0,0"]
-    extra = [str(tmp_path / e) if e.endswith(".txt") else e for e in extra]
+    extra = [str(tmp_path / e) if e.endswith((".txt", ".yaml")) else e for e in extra]
     assert main(["bundle", *args, *extra, "-o", str(tmp_path / output)]) == 1
     assert message in capsys.readouterr().err
+    assert output == "taken" or not (tmp_path / output).exists()  # nothing half-made
 
 
 def test_bundle_rejects_a_pose_that_is_not_three_finite_numbers(
