@@ -27,6 +27,7 @@ from daemon_support import (
 )
 
 from mapserver.config import Config, parse_config
+from mapserver.inbox import InboxHandler
 from mapserver.service import Service
 
 pytestmark = pytest.mark.usefixtures("no_leaked_threads")
@@ -127,6 +128,18 @@ def test_uploads_in_every_order_are_each_processed_exactly_once(
     assert outcome["code"] == 0
     assert_settled(tmp_path, sources)
     assert sorted(calls(tmp_path)) == sorted(sources)
+
+
+def test_a_bundle_whose_events_were_all_lost_is_found_by_the_rescan(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # As after an inotify queue overflow: no event reaches the handler at all.
+    monkeypatch.setattr(InboxHandler, "on_any_event", lambda self, event: None)
+    source = make_bundle(tmp_path / "src" / "quiet")
+    with running(config_for(tmp_path, rescan_seconds=0.5)):
+        upload(source, layout(tmp_path)["inbox"])
+        wait_until(lambda: all_done(tmp_path, ["quiet"]), timeout=30, what="the rescan")
+    assert_settled(tmp_path, {"quiet": source})
 
 
 def test_a_worker_crash_fails_only_the_bundle_that_caused_it(tmp_path: Path) -> None:
