@@ -329,7 +329,7 @@ def _thin(points: FloatArray, resolution: float) -> FloatArray:
     keys -= keys.min(axis=0)
     cell = keys[:, 0] * (int(keys[:, 1].max()) + 1) + keys[:, 1]
     _, index = np.unique(cell, return_index=True)
-    return points[np.sort(index)]
+    return np.asarray(points[np.sort(index)], dtype=np.float64)
 
 
 def _search_level(
@@ -420,7 +420,7 @@ class NearestWall:
         table = np.zeros(((0 if cells is None else len(cells)) + 1, 2))
         if cells is not None:
             table[1:] = cells.reshape(-1, 2)  # (col, row), row-major as the labels
-        return NearestWall(labels, table)
+        return NearestWall(np.asarray(labels, np.int32), table)
 
     def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
         rows, cols = index

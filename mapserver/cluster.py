@@ -151,7 +151,9 @@ def dbscan_pixels(
         other = components[cr + dr, cc + dc]
         across = (other > 0) & (other != own)
         pairs.append(np.stack([own[across], other[across]], axis=1))
-    roots = _smallest_connected(n_comp, np.concatenate(pairs) if pairs else np.zeros((0, 2)))
+    roots = _smallest_connected(
+        n_comp, np.concatenate(pairs) if pairs else np.zeros((0, 2), np.intp)
+    )
     cluster_of_core = roots[own]
     # Number the clusters by their first core pixel (the points are in row-major order).
     _, first = np.unique(cluster_of_core, return_index=True)

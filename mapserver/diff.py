@@ -53,7 +53,7 @@ def offset_distances(reach_px: float) -> NDArray[np.float32]:
     k = math.ceil(reach_px) + 1
     single = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
     single[k, k] = 0
-    out = cv2.distanceTransform(single, cv2.DIST_L2, 5)
+    out = np.asarray(cv2.distanceTransform(single, cv2.DIST_L2, 5), np.float32)
     out.flags.writeable = False
     return out
 

@@ -89,7 +89,7 @@ def _greys(state: NDArray[np.uint8], free: int, occupied: int, unknown: int) -> 
     """A BGR image of cell states in three greys (one table lookup, not a pass per state)."""
     table = np.full(256, unknown, np.uint8)
     table[FREE], table[OCCUPIED] = free, occupied
-    return cv2.cvtColor(cv2.LUT(state, table), cv2.COLOR_GRAY2BGR)
+    return np.asarray(cv2.cvtColor(cv2.LUT(state, table), cv2.COLOR_GRAY2BGR), np.uint8)
 
 
 def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:

@@ -68,7 +68,9 @@ def observed(local_state: NDArray[np.uint8], grid: Grid) -> Roi:
     m = 8
     c0, r0 = max(x - m, 0), max(y - m, 0)
     part = known[r0 : y + h + m, c0 : x + w + m].view(np.uint8)
-    closed = cv2.morphologyEx(part, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    closed = np.asarray(
+        cv2.morphologyEx(part, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)), np.uint8
+    )
     return Roi("observed", known, _outline(closed, grid, simplify_m=0.25, offset=(c0, r0)))
 
 
