@@ -377,7 +377,7 @@ class Service:
         # runs, and fork() with threads can copy a held lock into the child. The server imports
         # the pipeline once; every worker (also those replacing a crashed pool) forks from it.
         context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(["mapserver.pipeline"])
+        context.set_forkserver_preload(["mapserver.pipeline", "sklearn.cluster"])
         return ProcessPoolExecutor(
             max_workers=self._workers,
             mp_context=context,

@@ -18,7 +18,6 @@ from mapserver.align import (
     known_points,
     structure_mask,
 )
-from mapserver.cluster import cluster_mask, dbscan_pixels, neighbour_offsets
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
@@ -287,39 +286,6 @@ def test_drift_warp_of_the_landing_box_is_the_whole_grid_one(seed: int) -> None:
     got = deform.warp_local(local, grid, transform, drift)
     assert (got != UNKNOWN).any()
     assert np.array_equal(got, _warp_whole_grid(local, grid, transform, drift))
-
-
-@pytest.mark.parametrize("seed", range(12))
-def test_grid_dbscan_labels_are_scikit_learns(seed: int) -> None:
-    from sklearn.cluster import DBSCAN
-
-    rng = np.random.default_rng(seed)
-    canvas = (rng.random((140, 180)) < rng.choice([0.003, 0.02, 0.1])).astype(np.uint8)
-    for _ in range(6):  # obstacles: blobs and strokes
-        centre = (int(rng.integers(0, 180)), int(rng.integers(0, 140)))
-        cv2.circle(canvas, centre, int(rng.integers(1, 6)), 1, -1)
-        cv2.line(canvas, centre, (centre[0] + 25, centre[1] - 9), 1, int(rng.integers(1, 3)))
-    rows, cols = np.nonzero(canvas)
-    resolution = float(rng.choice([0.05, 0.025]))
-    # Radii off the exact pixel distances, where scikit-learn's answer is rounding noise.
-    eps_m = float(rng.choice([0.33, 0.27, 0.12, 0.07])) * resolution / 0.05
-    min_samples = int(rng.choice([1, 3, 5]))
-    grid = Grid(rng.uniform(-50, 50), rng.uniform(-50, 50), resolution, 180, 140)
-    xy = grid.to_world(np.stack([cols, rows], axis=1))
-    expected = DBSCAN(eps=eps_m, min_samples=min_samples).fit_predict(xy)
-    got = dbscan_pixels(
-        rows, cols, neighbours=neighbour_offsets(eps_m, resolution), min_samples=min_samples
-    )
-    assert np.array_equal(got, expected)
-
-
-def test_pixels_exactly_eps_apart_are_neighbours() -> None:
-    mask = np.zeros((20, 30), bool)
-    mask[5, 3] = mask[5, 9] = True  # 6 px = 0.30 m apart
-    grid = Grid(0.0, 0.0, 0.05, 30, 20)
-    found = cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=2)
-    assert len(found) == 1 and found[0].pixels == 2
-    assert cluster_mask(mask, grid, "added", eps_m=0.29, min_samples=2) == []
 
 
 def _plain_consistency(local, transform, view, tolerance_m):  # type: ignore[no-untyped-def]
