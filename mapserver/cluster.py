@@ -43,11 +43,15 @@ def cluster_mask(
     min_samples: int,
     min_pixels: int = 1,
     min_area_m2: float = 0.0,
+    evidence: NDArray[np.bool_] | None = None,
+    min_evidence: float = 0.5,
 ) -> list[Difference]:
     """Group the True pixels of ``mask`` (on ``grid``) into obstacles with DBSCAN.
 
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
-    ``min_pixels`` or ``min_area_m2`` are dropped, and so is DBSCAN's noise.
+    ``min_pixels`` or ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
+    (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
+    its pixels are in it.
     """
     # The True pixels, row-major, found in their bounding box (a difference mask is sparse).
     x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
@@ -62,9 +66,12 @@ def cluster_mask(
     for label in np.unique(labels):
         if label < 0:
             continue
-        pts = xy[labels == label]
+        members = labels == label
+        pts = xy[members]
         area = len(pts) * grid.resolution**2
         if len(pts) < min_pixels or area < min_area_m2:
+            continue
+        if evidence is not None and evidence[rows[members], cols[members]].mean() < min_evidence:
             continue
         lo, hi = pts.min(axis=0) - half, pts.max(axis=0) + half
         c = pts.mean(axis=0)

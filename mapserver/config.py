@@ -69,6 +69,14 @@ class DiffConfig(_Frozen):
     few hits and mark slivers of its face free."""
     min_removed_cells: int = Field(8, ge=1)
     """A removed obstacle must be seen free over at least this many local-map cells."""
+    removed_depth_m: float = Field(0.15, ge=0)
+    """A removed obstacle must be seen free this deep inside the structure (at least two cells
+    of the coarser map) ..."""
+    see_through_m: float = Field(0.35, ge=0)
+    """... or with open space on both sides within this distance: the robot looked through
+    where it was. A wall face eroded by grazing rays has neither."""
+    removed_evidence_share: float = Field(0.5, ge=0, le=1)
+    """The share of a removed obstacle's cells that must show one of those two."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

@@ -139,6 +139,53 @@ def raw_differences(
     return DiffMasks(added_full, removed_full)
 
 
+def removal_evidence(
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    removed: BoolArray,
+    *,
+    resolution: float,
+    depth_m: float,
+    see_through_m: float,
+) -> BoolArray:
+    """Removed cells that show a structure is really gone, not a face eroded by grazing rays.
+
+    A cell counts when it lies at least ``depth_m`` inside the global structure (rays crossed
+    the structure's interior), or when the robot saw open space on both sides of it within
+    ``see_through_m`` along a row, a column or a diagonal (it looked through where the
+    structure was). A strip along a wall's face has open space on one side only and no depth:
+    rays skimming a wall seen end-on or from far away erode its face in the local map.
+
+    Returns a new (H, W) bool array, True only on cells of ``removed``.
+    """
+    evidence = np.zeros(removed.shape, bool)
+    x, y, w, h = cv2.boundingRect(removed.view(np.uint8))
+    if w == 0:
+        return evidence
+    reach = max(1, round(see_through_m / resolution))
+    m = max(reach, math.ceil(depth_m / resolution) + 2)
+    r0, c0 = max(y - m, 0), max(x - m, 0)
+    r1, c1 = min(y + h + m, removed.shape[0]), min(x + w + m, removed.shape[1])
+    box = (slice(r0, r1), slice(c0, c1))
+    g_occ = global_state[box] == OCCUPIED
+    cand = removed[box]
+    depth = cv2.distanceTransform(g_occ.astype(np.uint8), cv2.DIST_L2, 5) * resolution
+    found = cand & (depth >= depth_m)
+    open_space = ((local_state[box] == FREE) & ~g_occ).astype(np.uint8)
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        # One-sided line kernels: open space within `reach` before, and after, the cell.
+        size = 2 * reach + 1
+        before = np.zeros((size, size), np.uint8)
+        for t in range(1, reach + 1):
+            before[reach - dr * t, reach - dc * t] = 1
+        # cv2.dilate reads the source at each kernel cell's offset from the anchor (the centre).
+        seen_before = cv2.dilate(open_space, before) > 0
+        seen_after = cv2.dilate(open_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
+        found |= cand & seen_before & seen_after
+    evidence[box] = found
+    return evidence
+
+
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     """``mask`` without its 8-connected components smaller than ``min_pixels``."""
     out = mask.copy()
@@ -181,4 +228,5 @@ __all__ = [
     "near",
     "offset_distances",
     "raw_differences",
+    "removal_evidence",
 ]

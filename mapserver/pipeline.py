@@ -257,10 +257,10 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         "roi", lambda: _make_roi(config, files, transform, local_state, grid, warnings)
     )
 
-    def _diff() -> diff_stage.DiffMasks:
+    def _diff() -> tuple[diff_stage.DiffMasks, np.ndarray]:
         if not alignment.trusted:
             empty = np.zeros(grid.shape, bool)
-            return diff_stage.DiffMasks(empty, empty.copy())
+            return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
         raw = diff_stage.raw_differences(
             view.state,
             local_state,
@@ -273,17 +273,33 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         min_px = max(
             1, round(settings.diff.min_local_cells * (local.resolution / grid.resolution) ** 2)
         )
-        return diff_stage.filter_noise(raw, min_pixels=min_px)
+        filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
+        evidence = diff_stage.removal_evidence(
+            view.state,
+            local_state,
+            filtered.removed,
+            resolution=grid.resolution,
+            depth_m=max(
+                settings.diff.removed_depth_m, 2 * max(local.resolution, global_map.resolution)
+            ),
+            see_through_m=settings.diff.see_through_m,
+        )
+        return filtered, evidence
 
-    masks = stages.run("diff", _diff)
+    masks, removal_evidence = stages.run("diff", _diff)
 
     def _cluster() -> list[cluster_stage.Difference]:
         d = settings.diff
         cell_m2 = local.resolution**2
         found = []
-        for kind, mask, cells in (
-            ("added", masks.added, d.min_local_cells),
-            ("removed", masks.removed, max(d.min_local_cells, d.min_removed_cells)),
+        for kind, mask, cells, evidence in (
+            ("added", masks.added, d.min_local_cells, None),
+            (
+                "removed",
+                masks.removed,
+                max(d.min_local_cells, d.min_removed_cells),
+                removal_evidence,
+            ),
         ):
             min_area = max(d.min_area_m2, cells * cell_m2)
             found += cluster_stage.cluster_mask(
@@ -293,6 +309,8 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
                 eps_m=d.cluster_eps_m,
                 min_samples=d.cluster_min_samples,
                 min_area_m2=min_area,
+                evidence=evidence,
+                min_evidence=d.removed_evidence_share,
             )
         return cluster_stage.sort_by_area(found)
 

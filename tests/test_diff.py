@@ -135,3 +135,23 @@ def test_warp_with_drift_moves_walls_by_the_shift() -> None:
     cols_moved = np.nonzero(occ_moved)[1].mean()
     assert cols_moved - cols_plain == pytest.approx(5.0, abs=0.5)
     assert math.isclose(field.max_shift_m(), 0.25, rel_tol=1e-6)
+
+
+def test_removal_evidence_rejects_an_eroded_wall_face_and_keeps_a_wall_seen_through() -> None:
+    from mapserver.diff import removal_evidence
+
+    g = np.full((40, 40), FREE, np.uint8)
+    g[10:30, 16:22] = OCCUPIED  # a wall 6 px (0.3 m) thick
+    # The robot, on the left, saw the wall's face eroded by grazing rays: a free strip on it.
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:, :16] = FREE
+    loc[10:30, 16] = FREE
+    strip = (g == OCCUPIED) & (loc == FREE)
+    ev = removal_evidence(g, loc, strip, resolution=0.05, depth_m=0.15, see_through_m=0.35)
+    assert strip.sum() == 20 and not ev.any()
+    # The same wall gone: the robot sees free across it and beyond.
+    loc[:, :] = FREE
+    gone = (g == OCCUPIED) & (loc == FREE)
+    ev = removal_evidence(g, loc, gone, resolution=0.05, depth_m=0.15, see_through_m=0.35)
+    assert ev.sum() == gone.sum() == 120
+    assert not (ev & ~gone).any()
