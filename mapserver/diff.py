@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.maps import FREE, OCCUPIED
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
 
@@ -83,6 +83,7 @@ def raw_differences(
     tolerance_m: float,
     removed_tolerance_m: float | None = None,
     global_walls: BoolArray | None = None,
+    unknown_is_wall: bool = True,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -102,6 +103,10 @@ def raw_differences(
     global_walls
         Optional (H, W) bool: walls of the global map beyond its occupied cells (grey lines);
         a local wall on them is not new.
+    unknown_is_wall
+        A local wall within ``tolerance_m`` of the global map's unknown area is the edge of
+        what the global map knows (its wall not drawn, or the robot saw it from another side),
+        not a new obstacle.
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -127,6 +132,8 @@ def raw_differences(
     g_occ = g_state == OCCUPIED
     l_occ = l_state == OCCUPIED
     g_walls = g_occ if global_walls is None else (g_occ | global_walls[box])
+    if unknown_is_wall:
+        g_walls = g_walls | (g_state == UNKNOWN)
     # ``distance_to(walls) > tol`` as a dilation by the offsets that are not beyond tol (same
     # cells, a fraction of the cost).
     added = l_occ & (g_state == FREE) & roi

@@ -155,3 +155,13 @@ def test_removal_evidence_rejects_an_eroded_wall_face_and_keeps_a_wall_seen_thro
     ev = removal_evidence(g, loc, gone, resolution=0.05, depth_m=0.15, see_through_m=0.35)
     assert ev.sum() == gone.sum() == 120
     assert not (ev & ~gone).any()
+
+
+def test_a_wall_at_the_edge_of_what_the_global_map_knows_is_not_added() -> None:
+    g, loc, roi = _maps()
+    g[:, 80:] = UNKNOWN  # the global map stops here without drawing a wall
+    loc[:, 78] = OCCUPIED  # the robot sees the wall 2 px inside the free side
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert not d.added.any()
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, unknown_is_wall=False)
+    assert d.added[:, 78].all()
