@@ -41,8 +41,12 @@ class AlignConfig(_Frozen):
     jump_m: float = Field(0.5, gt=0)
     deform: bool = True
     """Correct SLAM drift with small per-tile shifts after the rigid alignment."""
-    deform_tile_m: float = Field(6.0, gt=0)
+    deform_tile_m: float = Field(4.5, gt=0)
+    """Size of the smallest neighbourhoods that get their own drift shift (the finest pass)."""
     deform_max_shift_m: float = Field(0.8, ge=0)
+    """Largest drift shift of the coarsest pass; each finer pass allows half the one before."""
+    deform_passes: int = Field(3, ge=1, le=5)
+    """Coarse-to-fine drift passes; each doubles the neighbourhood of the one after it."""
 
 
 class RoiConfig(_Frozen):

@@ -56,6 +56,22 @@ class DriftField:
         return float(np.sqrt((self.shifts**2).sum(axis=2)).max()) if self.shifts.size else 0.0
 
 
+@dataclass(frozen=True)
+class DriftStack:
+    """Several drift fields applied together: their shifts add up (coarse, then finer)."""
+
+    fields: tuple[DriftField, ...]
+
+    def at(self, xy_slam: FloatArray) -> FloatArray:
+        out = np.zeros((len(xy_slam), 2))
+        for f in self.fields:
+            out += f.at(xy_slam)
+        return out
+
+    def max_shift_m(self) -> float:
+        return sum(f.max_shift_m() for f in self.fields)
+
+
 def _fill_missing(values: NDArray[np.float32], valid: NDArray[np.bool_]) -> NDArray[np.float32]:
     """Fill nodes without an estimate from their valid neighbours (normalised blur, repeated)."""
     out = values.copy()
@@ -84,6 +100,7 @@ def estimate_drift(
     max_shift_m: float = 0.4,
     min_points: int = 40,
     iterations: int = 12,
+    initial: DriftField | DriftStack | None = None,
 ) -> DriftField:
     """Per-node translation (nav2 metres) that lays nearby local walls onto global walls.
 
@@ -91,7 +108,8 @@ def estimate_drift(
     ``min_points`` walls, or whose walls barely match, borrow from their neighbours. The shifts
     are median-filtered (an odd node is an outlier, not drift) and clipped to ``max_shift_m``.
     ``nearest_colrow`` is the (H, W, 2) field of the nearest global wall's (col, row) on
-    ``grid``.
+    ``grid``. With ``initial``, the shifts are estimated on top of that field's (a finer pass
+    after a coarse one).
     """
     spacing = tile_m / 2.0
     lo = walls_slam.min(axis=0) - spacing
@@ -101,6 +119,8 @@ def estimate_drift(
     shifts = np.zeros((rows, cols, 2), np.float32)
     valid = np.zeros((rows, cols), bool)
     base = nav2_from_slam.apply(walls_slam)
+    if initial is not None:
+        base = base + initial.at(walls_slam)
     h, w = nearest_colrow.shape[:2]
     node_i = np.floor((walls_slam[:, 1] - lo[1]) / spacing + 0.5).astype(int)
     node_j = np.floor((walls_slam[:, 0] - lo[0]) / spacing + 0.5).astype(int)
@@ -169,7 +189,7 @@ def _source_coords(
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
-    drift: DriftField | None,
+    drift: DriftField | DriftStack | None,
 ) -> tuple[FloatArray, FloatArray]:
     """Fractional local-map (col, row) that lands on grid pixels (cols, rows)."""
     m = nav2_from_slam.inverse().matrix() @ grid.world_from_pixel()
@@ -192,7 +212,7 @@ def warp_local(
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
-    drift: DriftField | None = None,
+    drift: DriftField | DriftStack | None = None,
     *,
     step_px: int = 8,
 ) -> NDArray[np.uint8]:
@@ -240,7 +260,7 @@ def _landing_box(
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
-    drift: DriftField,
+    drift: DriftField | DriftStack,
     *,
     step_px: int,
 ) -> tuple[int, int, int, int] | None:

@@ -175,6 +175,14 @@ def _make_roi(
     return roi.Roi(region.strategy, region.mask & observed.mask, region.polygon)
 
 
+def _drift_passes(tile_m: float, max_shift_m: float, passes: int) -> list[tuple[float, float]]:
+    """(neighbourhood size, largest shift) of each drift pass, coarse to fine: every pass halves
+    both, ending at ``tile_m``."""
+    return [
+        (tile_m * 2.0**k, max_shift_m / 2.0 ** (passes - 1 - k)) for k in reversed(range(passes))
+    ]
+
+
 def _difference_doc(index: int, d: cluster_stage.Difference) -> dict[str, Any]:
     return {
         "id": index,
@@ -234,20 +242,29 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
     transform = alignment.nav2_from_slam
     grid = view.grid
 
-    def _warp() -> tuple[np.ndarray, deform.DriftField | None]:
+    def _warp() -> tuple[np.ndarray, deform.DriftStack | None]:
         a = settings.align
-        field = None
+        drift = None
         if a.deform and alignment.trusted:
             walls = align_stage.known_points(local, state=OCCUPIED)
-            field = deform.estimate_drift(
-                walls,
-                transform,
-                grid,
-                view.nearest_wall,
-                tile_m=a.deform_tile_m,
-                max_shift_m=a.deform_max_shift_m,
-            )
-        return deform.warp_local(local, grid, transform, field), field
+            # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
+            fields: list[deform.DriftField] = []
+            for tile_m, max_shift_m in _drift_passes(
+                a.deform_tile_m, a.deform_max_shift_m, a.deform_passes
+            ):
+                fields.append(
+                    deform.estimate_drift(
+                        walls,
+                        transform,
+                        grid,
+                        view.nearest_wall,
+                        tile_m=tile_m,
+                        max_shift_m=max_shift_m,
+                        initial=deform.DriftStack(tuple(fields)) if fields else None,
+                    )
+                )
+            drift = deform.DriftStack(tuple(fields))
+        return deform.warp_local(local, grid, transform, drift), drift
 
     local_state, drift = stages.run("warp", _warp)
     view.drop_search_fields()
