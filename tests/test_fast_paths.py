@@ -192,7 +192,12 @@ def test_farthest_known_cell_from_the_row_ends(seed: int) -> None:
 def _plain_differences(g, loc, roi, *, resolution, tolerance_m, removed_tolerance_m, walls):  # type: ignore[no-untyped-def]
     """raw_differences as first written: whole arrays, distance transforms."""
     g_occ, l_occ = g == OCCUPIED, loc == OCCUPIED
-    added = l_occ & (g == FREE) & roi & (distance_to(g_occ | walls | (g == UNKNOWN)) > tolerance_m / resolution)
+    added = (
+        l_occ
+        & (g == FREE)
+        & roi
+        & (distance_to(g_occ | walls | (g == UNKNOWN)) > tolerance_m / resolution)
+    )
     removed = g_occ & (loc == FREE) & roi & (distance_to(l_occ) > removed_tolerance_m / resolution)
     return added, removed
 
