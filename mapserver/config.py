@@ -68,6 +68,11 @@ class DiffConfig(_Frozen):
     """Differences smaller than this many local-map cells are noise (scan specks)."""
     min_area_m2: float = Field(0.0, ge=0)
     """An absolute floor on a difference's area, on top of ``min_local_cells``."""
+    max_misfit_tolerance_m: float = Field(0.5, ge=0)
+    """Where local walls still sit off the global ones (drift not fully taken out, a wall seen
+    doubled on a revisit), the added tolerance grows with that misfit, up to this."""
+    misfit_tile_m: float = Field(3.0, gt=0)
+    """The misfit is measured over the walls of each tile of this size and its neighbours."""
     removed_tolerance_m: float = Field(0.25, ge=0)
     """Removed cells must be this far from any wall the local map sees: rays grazing a wall get
     few hits and mark slivers of its face free."""

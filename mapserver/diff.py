@@ -84,6 +84,7 @@ def raw_differences(
     removed_tolerance_m: float | None = None,
     global_walls: BoolArray | None = None,
     unknown_is_wall: bool = True,
+    added_tolerance_map: NDArray[np.float32] | None = None,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -107,6 +108,9 @@ def raw_differences(
         A local wall within ``tolerance_m`` of the global map's unknown area is the edge of
         what the global map knows (its wall not drawn, or the robot saw it from another side),
         not a new obstacle.
+    added_tolerance_map
+        Optional (H, W) float32 metres: a per-cell tolerance for added cells, at least
+        ``tolerance_m`` (see :func:`misfit_tolerance`).
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -139,11 +143,73 @@ def raw_differences(
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~near(g_walls, ~(offset_distances(tol_px) > tol_px))
+        if added_tolerance_map is not None and added.any():
+            added &= distance_to(g_walls) * resolution > added_tolerance_map[box]
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
+
+
+def misfit_tolerance(
+    local_state: NDArray[np.uint8],
+    global_walls: BoolArray,
+    *,
+    resolution: float,
+    base_m: float,
+    max_m: float,
+    tile_m: float,
+    quantile: float = 0.8,
+    min_walls: int = 30,
+) -> NDArray[np.float32]:
+    """Per-cell tolerance for added obstacles: how far local walls sit from global walls nearby.
+
+    Where the alignment (with its drift correction) lays the local walls onto the global ones,
+    the tolerance stays ``base_m``; where they still sit off (drift that could not be taken out,
+    a wall seen doubled on a revisit), it grows to the ``quantile`` of the local walls' distance
+    to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``. Measured over
+    the walls in each tile of ``tile_m`` and its eight neighbours. Returns (H, W) float32
+    metres.
+    """
+    tol = np.full(local_state.shape, base_m, np.float32)
+    local_walls = local_state == OCCUPIED
+    if not local_walls.any() or not global_walls.any():
+        return tol
+    dist_m = distance_to(global_walls) * resolution
+    # Local walls with a global counterpart within reach: new obstacles far from any wall do
+    # not count as misfit.
+    counted = local_walls & (dist_m <= max_m)
+    rows, cols = np.nonzero(counted)
+    if len(rows) < min_walls:
+        return tol
+    values = dist_m[rows, cols]
+    tile = max(1, round(tile_m / resolution))
+    ti, tj = rows // tile, cols // tile
+    n_i, n_j = local_state.shape[0] // tile + 1, local_state.shape[1] // tile + 1
+    order = np.lexsort((values, tj, ti))
+    ti, tj, values = ti[order], tj[order], values[order]
+    key = ti * n_j + tj
+    starts = np.searchsorted(key, np.arange(n_i * n_j))
+    ends = np.searchsorted(key, np.arange(n_i * n_j), side="right")
+    for i in range(n_i):
+        for j in range(n_j):
+            parts = [
+                values[starts[k] : ends[k]]
+                for k in (
+                    (i + di) * n_j + (j + dj)
+                    for di in (-1, 0, 1)
+                    for dj in (-1, 0, 1)
+                    if 0 <= i + di < n_i and 0 <= j + dj < n_j
+                )
+            ]
+            near = np.concatenate(parts) if parts else values[:0]
+            if len(near) >= min_walls:
+                q = float(np.quantile(near, quantile)) + base_m / 2
+                tol[i * tile : (i + 1) * tile, j * tile : (j + 1) * tile] = min(
+                    max(q, base_m), max_m
+                )
+    return tol
 
 
 def removal_evidence(
@@ -232,6 +298,7 @@ __all__ = [
     "distance_to",
     "drop_small",
     "filter_noise",
+    "misfit_tolerance",
     "near",
     "offset_distances",
     "raw_differences",

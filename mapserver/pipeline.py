@@ -278,14 +278,26 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         if not alignment.trusted:
             empty = np.zeros(grid.shape, bool)
             return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
+        d = settings.diff
+        tolerance_map = None
+        if d.max_misfit_tolerance_m > d.tolerance_m:
+            tolerance_map = diff_stage.misfit_tolerance(
+                local_state,
+                (view.state == OCCUPIED) | view.structure,
+                resolution=grid.resolution,
+                base_m=d.tolerance_m,
+                max_m=d.max_misfit_tolerance_m,
+                tile_m=d.misfit_tile_m,
+            )
         raw = diff_stage.raw_differences(
             view.state,
             local_state,
             region.mask,
             resolution=grid.resolution,
-            tolerance_m=settings.diff.tolerance_m,
-            removed_tolerance_m=settings.diff.removed_tolerance_m,
+            tolerance_m=d.tolerance_m,
+            removed_tolerance_m=d.removed_tolerance_m,
             global_walls=view.structure,
+            added_tolerance_map=tolerance_map,
         )
         min_px = max(
             1, round(settings.diff.min_local_cells * (local.resolution / grid.resolution) ** 2)

@@ -165,3 +165,28 @@ def test_a_wall_at_the_edge_of_what_the_global_map_knows_is_not_added() -> None:
     assert not d.added.any()
     d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, unknown_is_wall=False)
     assert d.added[:, 78].all()
+
+
+def test_misfit_tolerance_grows_only_where_local_walls_sit_off() -> None:
+    from mapserver.diff import misfit_tolerance
+
+    shape = (120, 240)  # 6 m x 12 m at 0.05 m
+    g_walls = np.zeros(shape, bool)
+    g_walls[60, :] = True  # one long wall
+    loc = np.full(shape, FREE, np.uint8)
+    loc[60, :120] = OCCUPIED  # left half: seen where the global map has it
+    loc[66, 120:] = OCCUPIED  # right half: seen 0.30 m off (drift)
+    tol = misfit_tolerance(
+        loc, g_walls, resolution=RES, base_m=0.15, max_m=0.5, tile_m=1.0, min_walls=10
+    )
+    assert tol[60, 10] == pytest.approx(0.15)
+    assert tol[60, 230] == pytest.approx(0.30 + 0.075, abs=0.01)
+    # The doubled wall is then not "added"; a box far from any wall still is.
+    g = np.full(shape, FREE, np.uint8)
+    g[g_walls] = OCCUPIED
+    loc[20:26, 200:206] = OCCUPIED
+    d = raw_differences(
+        g, loc, np.ones(shape, bool), resolution=RES, tolerance_m=0.15, added_tolerance_map=tol
+    )
+    rows, _ = np.nonzero(d.added)
+    assert set(rows) == set(range(20, 26))
