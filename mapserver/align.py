@@ -150,21 +150,13 @@ def footprint(local: OccupancyMap) -> tuple[FloatArray, float]:
     return centre, radius
 
 
-def _farthest_known_m(local: OccupancyMap, centre: FloatArray) -> float:
-    """Largest distance (m) from ``centre`` (slam frame) to the centre of a known cell.
-
-    The farthest cell is a corner of the known cells' convex hull, so the first and last known
-    cell of every row are enough (the same number as over all cells, without listing them).
-    """
-    known = local.state != UNKNOWN
-    rows = np.flatnonzero(known.any(axis=1))
-    if len(rows) == 0:
-        raise ValueError("the local map has no known cells")
-    first = known[rows].argmax(axis=1)
-    last = known.shape[1] - 1 - known[rows, ::-1].argmax(axis=1)
-    x, y = local.pixel_to_world(np.concatenate([first, last]), np.concatenate([rows, rows]))
-    pts = np.stack([x, y], axis=1)
-    return float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max())
+def _known_corners(local: OccupancyMap) -> FloatArray:
+    """The four corners (slam metres) of the bounding box of the local map's known cells."""
+    x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
+    grid = Grid.of_map(local)
+    pts = grid.to_world(np.array([[x, y], [x + w - 1, y], [x, y + h - 1], [x + w - 1, y + h - 1]]))
+    half = local.resolution / 2
+    return pts + np.array([[-half, half], [half, half], [-half, -half], [half, -half]])
 
 
 def make_view(
@@ -173,6 +165,7 @@ def make_view(
     prior: Transform2D,
     *,
     search_xy_m: float,
+    search_theta_rad: float = math.pi,
     margin_m: float = 1.0,
     pivot_slam: tuple[float, float] | None = None,
 ) -> GlobalView:
@@ -180,18 +173,39 @@ def make_view(
 
     The work resolution is the finer of the two maps' resolutions, so that neither map loses
     detail. Only the crop is touched, never the whole global map. The crop holds the local map
-    turned by any angle about ``pivot_slam`` (default: its centroid) and shifted by up to
-    ``search_xy_m``.
+    turned about ``pivot_slam`` (default: its centroid) by up to ``search_theta_rad`` either way
+    and shifted by up to ``search_xy_m``. Its pixels coincide with the global map's.
     """
     if pivot_slam is None:
-        centre, radius = footprint(local)
+        centre, _ = footprint(local)
     else:
         centre = np.asarray(pivot_slam, dtype=float)
-        radius = _farthest_known_m(local, centre) + local.resolution
-    cx, cy = prior.apply(centre)
-    half = radius + search_xy_m + margin_m
+    # The box that holds the local map's known area turned by any angle the search tries about
+    # the pivot (and a little more), wherever the prior puts the pivot.
+    corners = _known_corners(local) - centre
+    angles = np.linspace(-search_theta_rad - 0.1, search_theta_rad + 0.1, 15)
+    xs, ys = [], []
+    for a in angles:
+        c, s_ = math.cos(prior.theta + a), math.sin(prior.theta + a)
+        xs.append(c * corners[:, 0] - s_ * corners[:, 1])
+        ys.append(s_ * corners[:, 0] + c * corners[:, 1])
+    # Chords between sampled angles cut inside the arcs: grow by the largest sagitta.
+    sagitta = float(np.hypot(corners[:, 0], corners[:, 1]).max()) * (
+        1 - math.cos((angles[1] - angles[0]) / 2)
+    )
+    pad = search_xy_m + margin_m + sagitta + local.resolution
+    px, py = prior.apply(centre)
+    lo_x, hi_x = px + np.min(xs) - pad, px + np.max(xs) + pad
+    lo_y, hi_y = py + np.min(ys) - pad, py + np.max(ys) + pad
     resolution = min(global_map.resolution, local.resolution)
-    grid = Grid.covering(cx - half, cy - half, cx + half, cy + half, resolution)
+    # Snap the grid to the global map's pixel lattice: resampling it is then an exact copy (or
+    # an exact split of its pixels), whatever the view's size or place.
+    ox, oy = global_map.origin[0], global_map.origin[1]
+    x0 = ox + math.floor((lo_x - ox) / resolution) * resolution
+    y0 = oy + math.floor((lo_y - oy) / resolution) * resolution
+    grid = Grid.covering(x0, y0, hi_x, hi_y, resolution)
+    cx, cy = (lo_x + hi_x) / 2, (lo_y + hi_y) / 2
+    half = max(hi_x - lo_x, hi_y - lo_y) / 2 + resolution
     src = Grid.of_map(global_map)
     # Crop the source to the box first: the warp then reads only the pixels it needs.
     c0, r0 = np.floor(src.to_pixel([[cx - half, cy + half]])[0]).astype(int) - 1

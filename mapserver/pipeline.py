@@ -221,7 +221,12 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         robot = files.manifest.pose.slam.to_pose()
         pivot = (robot.x, robot.y)
         view = align_stage.make_view(
-            global_map, local, prior, search_xy_m=settings.align.search_xy_m, pivot_slam=pivot
+            global_map,
+            local,
+            prior,
+            search_xy_m=settings.align.search_xy_m,
+            search_theta_rad=math.radians(settings.align.search_theta_deg),
+            pivot_slam=pivot,
         )
         result = align_stage.align(
             local,

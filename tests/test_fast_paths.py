@@ -12,10 +12,8 @@ from mapserver import deform, roi
 from mapserver.align import (
     GlobalView,
     NearestWall,
-    _farthest_known_m,
     _thin,
     consistency,
-    known_points,
     structure_mask,
 )
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
@@ -172,21 +170,6 @@ def test_vectorised_drift_estimate_is_the_node_by_node_one(
     assert valid.any() and not valid.all()
     assert np.array_equal(captured["valid"], valid)
     assert np.array_equal(captured["shifts"], shifts)
-
-
-@pytest.mark.parametrize("seed", range(5))
-def test_farthest_known_cell_from_the_row_ends(seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    state = np.full((80, 120), UNKNOWN, np.uint8)
-    for _ in range(6):  # known blobs of any shape, holes and all
-        r, c = rng.integers(0, 70), rng.integers(0, 110)
-        state[r : r + rng.integers(1, 30), c : c + rng.integers(1, 40)] = rng.choice(
-            [FREE, OCCUPIED]
-        )
-    local = from_states(state, 0.05, (rng.uniform(-5, 5), rng.uniform(-5, 5), 0.0))
-    for centre in rng.normal(0.0, 4.0, (10, 2)):
-        every = np.sqrt(((known_points(local) - centre) ** 2).sum(axis=1)).max()
-        assert _farthest_known_m(local, centre) == every
 
 
 def _plain_differences(g, loc, roi, *, resolution, tolerance_m, removed_tolerance_m, walls):  # type: ignore[no-untyped-def]
