@@ -333,7 +333,7 @@ def _make_level(view: GlobalView, resolution: float, pad: int) -> _Level:
     return _Level(grid, field, pad)
 
 
-def _thin(points: FloatArray, resolution: float) -> FloatArray:
+def thin_points(points: FloatArray, resolution: float) -> FloatArray:
     """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size):
     the first point of each cell, in the cloud's order."""
     keys = np.floor(points / resolution).astype(np.int64)
@@ -546,7 +546,7 @@ def _search(
     step0 = res0 / radius
     n = max(1, math.ceil(theta_half_rad / step0))
     thetas = prior.theta + step0 * np.arange(-n, n + 1)
-    coarse = _search_level(levels[0], _thin(walls, res0), centre, target0, thetas, shift0)
+    coarse = _search_level(levels[0], thin_points(walls, res0), centre, target0, thetas, shift0)
     seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
     seeds.append((prior.theta, target0))
     out = []
@@ -554,7 +554,7 @@ def _search(
         step = step0
         for level in levels[1:]:
             step /= 2.0
-            pts = _thin(walls, level.grid.resolution)
+            pts = thin_points(walls, level.grid.resolution)
             rows = _search_level(level, pts, centre, target, theta + step * np.arange(-2, 3), 2)
             best = max(rows)
             theta, target = best[1], np.array(best[2:])
@@ -628,7 +628,7 @@ def align(
 
     centre = walls.mean(axis=0)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
-    icp_walls = _thin(walls, 2.0 * view.grid.resolution)
+    icp_walls = thin_points(walls, 2.0 * view.grid.resolution)
     icp_reach = max(0.3, 4 * view.grid.resolution)
 
     def evaluate(theta_half: float) -> tuple[float, Transform2D]:
@@ -710,4 +710,5 @@ __all__ = [
     "known_points",
     "make_view",
     "structure_mask",
+    "thin_points",
 ]

@@ -34,7 +34,7 @@ def distance_to(mask: BoolArray) -> NDArray[np.float32]:
     """Distance in pixels from every cell to the nearest True cell of ``mask`` (large if none)."""
     if not mask.any():
         return np.full(mask.shape, 1e6, np.float32)
-    return cv2.distanceTransform(np.where(mask, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
+    return cv2.distanceTransform((~mask).view(np.uint8), cv2.DIST_L2, 5)
 
 
 @lru_cache(maxsize=32)
@@ -174,16 +174,23 @@ def misfit_tolerance(
     """
     tol = np.full(local_state.shape, base_m, np.float32)
     local_walls = local_state == OCCUPIED
-    if not local_walls.any() or not global_walls.any():
+    x, y, w, h = cv2.boundingRect(local_walls.view(np.uint8))
+    if w == 0 or not global_walls.any():
         return tol
-    dist_m = distance_to(global_walls) * resolution
+    # Distances on the box around the local walls, with room for the reach.
+    k = math.ceil(max_m / resolution) + 1
+    r0, c0 = max(y - k, 0), max(x - k, 0)
+    box = (slice(r0, y + h + k), slice(c0, x + w + k))
+    dist_m = distance_to(global_walls[box]) * resolution
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
-    counted = local_walls & (dist_m <= max_m)
+    counted = local_walls[box] & (dist_m <= max_m)
     rows, cols = np.nonzero(counted)
+    rows, cols = rows + r0, cols + c0
+    dist_m_at = dist_m[rows - r0, cols - c0]
     if len(rows) < min_walls:
         return tol
-    values = dist_m[rows, cols]
+    values = dist_m_at
     tile = max(1, round(tile_m / resolution))
     ti, tj = rows // tile, cols // tile
     n_i, n_j = local_state.shape[0] // tile + 1, local_state.shape[1] // tile + 1

@@ -251,7 +251,10 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
-            walls = align_stage.known_points(local, state=OCCUPIED)
+            # One wall point per two work cells: the shifts are averages over metres of wall.
+            walls = align_stage.thin_points(
+                align_stage.known_points(local, state=OCCUPIED), 2 * grid.resolution
+            )
             # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
             fields: list[deform.DriftField] = []
             for tile_m, max_shift_m in _drift_passes(

@@ -12,9 +12,9 @@ from mapserver import deform, roi
 from mapserver.align import (
     GlobalView,
     NearestWall,
-    _thin,
     consistency,
     structure_mask,
+    thin_points,
 )
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
@@ -338,8 +338,8 @@ def test_thin_keeps_the_first_point_of_every_cell() -> None:
     points = rng.normal(0.0, 3.0, (2000, 2))
     keys = np.floor(points / 0.3).astype(np.int64)
     _, index = np.unique(keys, axis=0, return_index=True)
-    assert np.array_equal(_thin(points, 0.3), points[np.sort(index)])
-    assert len(_thin(points[:0], 0.3)) == 0
+    assert np.array_equal(thin_points(points, 0.3), points[np.sort(index)])
+    assert len(thin_points(points[:0], 0.3)) == 0
 
 
 @pytest.mark.parametrize("seed", range(4))
