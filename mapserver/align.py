@@ -113,7 +113,7 @@ def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
     unknown_level = int(np.argmax(counts)) if counts.any() else 127
     level = unknown_level + 0.2 * (255 - unknown_level)
     # occ >= level for whole numbers occ: an 8-bit comparison, not a float one per cell.
-    return (m.state == OCCUPIED) | (occ >= np.uint8(math.ceil(level)))
+    return np.asarray((m.state == OCCUPIED) | (occ >= np.uint8(math.ceil(level))), dtype=bool)
 
 
 def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArray[np.int64]:
@@ -156,7 +156,7 @@ def _known_corners(local: OccupancyMap) -> FloatArray:
     grid = Grid.of_map(local)
     pts = grid.to_world(np.array([[x, y], [x + w - 1, y], [x, y + h - 1], [x + w - 1, y + h - 1]]))
     half = local.resolution / 2
-    return pts + np.array([[-half, half], [half, half], [-half, -half], [half, -half]])
+    return np.asarray(pts + np.array([[-half, half], [half, half], [-half, -half], [half, -half]]))
 
 
 def make_view(
@@ -241,7 +241,9 @@ def _distance_field(structure: NDArray[np.bool_]) -> NDArray[np.float32]:
     """Distance in pixels from every cell to the nearest structure cell."""
     if not structure.any():
         return np.full(structure.shape, 1e6, np.float32)
-    return cv2.distanceTransform((~structure).view(np.uint8), cv2.DIST_L2, 5)
+    return np.asarray(
+        cv2.distanceTransform((~structure).view(np.uint8), cv2.DIST_L2, 5), np.float32
+    )
 
 
 def _lookup(image: NDArray[np.generic], grid: Grid, xy: FloatArray, fill: float) -> FloatArray:
@@ -531,7 +533,7 @@ def _search(
     cost is bounded whatever the map size; the best rotation candidates, and the prior, then
     descend ``fine_levels`` halvings of the resolution.
     """
-    centroid = walls.mean(axis=0)
+    centroid = np.asarray(walls.mean(axis=0), dtype=np.float64)
     size = max(float(np.sqrt(((walls - centroid) ** 2).sum(axis=1)).max()), 1.0)
     centre = centroid if pivot is None else np.asarray(pivot, dtype=float)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
@@ -545,7 +547,7 @@ def _search(
 
     step0 = res0 / radius
     n = max(1, math.ceil(theta_half_rad / step0))
-    thetas = prior.theta + step0 * np.arange(-n, n + 1)
+    thetas = np.asarray(prior.theta + step0 * np.arange(-n, n + 1), dtype=np.float64)
     coarse = _search_level(levels[0], thin_points(walls, res0), centre, target0, thetas, shift0)
     seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
     seeds.append((prior.theta, target0))
@@ -555,7 +557,8 @@ def _search(
         for level in levels[1:]:
             step /= 2.0
             pts = thin_points(walls, level.grid.resolution)
-            rows = _search_level(level, pts, centre, target, theta + step * np.arange(-2, 3), 2)
+            turns = np.asarray(theta + step * np.arange(-2, 3), dtype=np.float64)
+            rows = _search_level(level, pts, centre, target, turns, 2)
             best = max(rows)
             theta, target = best[1], np.array(best[2:])
         out.append(_to_transform(theta, centre, target))
@@ -642,7 +645,7 @@ def align(
             fine_levels=1,
             pivot=None if pivot_slam is None else np.asarray(pivot_slam, dtype=float),
         )
-        polished = []
+        polished: list[tuple[float, Transform2D]] = []
         for t in found:
             t = icp(icp_walls, t, view.grid, view.nearest_wall, max_distance_m=icp_reach)
             if all(_distance(t, u, centre, radius) > 0.05 for _, u in polished):

@@ -118,7 +118,7 @@ class Manifest(_Model):
     def _stamp_text(cls, value: object) -> object:
         # YAML turns an unquoted ISO time into a datetime; keep the text form.
         if hasattr(value, "isoformat"):
-            return value.isoformat().replace("+00:00", "Z")  # type: ignore[union-attr]
+            return value.isoformat().replace("+00:00", "Z")
         return value
 
     def nav2_from_slam_prior(self) -> Transform2D:

@@ -34,7 +34,7 @@ def distance_to(mask: BoolArray) -> NDArray[np.float32]:
     """Distance in pixels from every cell to the nearest True cell of ``mask`` (large if none)."""
     if not mask.any():
         return np.full(mask.shape, 1e6, np.float32)
-    return cv2.distanceTransform((~mask).view(np.uint8), cv2.DIST_L2, 5)
+    return np.asarray(cv2.distanceTransform((~mask).view(np.uint8), cv2.DIST_L2, 5), np.float32)
 
 
 @lru_cache(maxsize=32)

@@ -76,7 +76,7 @@ class Transform2D:
         p = np.asarray(points_xy, dtype=float)
         c, s = math.cos(self.theta), math.sin(self.theta)
         rot = np.array([[c, -s], [s, c]])
-        return p @ rot.T + np.array([self.tx, self.ty])
+        return np.asarray(p @ rot.T + np.array([self.tx, self.ty]), dtype=np.float64)
 
     def compose(self, other: Transform2D) -> Transform2D:
         """``self o other``: first ``other``, then ``self``."""

@@ -63,7 +63,7 @@ class Grid:
         )
 
     def world_from_pixel(self) -> NDArray[np.float64]:
-        return np.linalg.inv(self.pixel_from_world())
+        return np.asarray(np.linalg.inv(self.pixel_from_world()), dtype=np.float64)
 
     def to_pixel(self, xy: ArrayLike) -> NDArray[np.float64]:
         """(N, 2) world points -> (N, 2) fractional (col, row)."""
@@ -116,7 +116,7 @@ def resample(
     """
     transform = dst_from_src or Transform2D.identity()
     matrix = warp_matrix(src, dst, transform)
-    return cv2.warpAffine(
+    out = cv2.warpAffine(
         image,
         matrix,
         (dst.width, dst.height),
@@ -124,3 +124,4 @@ def resample(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=fill,
     )
+    return np.asarray(out, dtype=np.uint8)

@@ -37,7 +37,7 @@ class Window:
 
     def to_image(self, grid: Grid, xy: NDArray[np.float64]) -> NDArray[np.int32]:
         px = grid.to_pixel(xy) - np.array([self.col0, self.row0])
-        return np.rint((px + 0.5) * self.scale - 0.5).astype(np.int32)
+        return np.asarray(np.rint((px + 0.5) * self.scale - 0.5), dtype=np.int32)
 
 
 def window_for(
@@ -72,7 +72,7 @@ def _crop(image: NDArray[T], window: Window) -> NDArray[T]:
 def _resized(crop: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
     size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
     interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
-    return cv2.resize(crop, size, interpolation=interpolation)
+    return np.asarray(cv2.resize(crop, size, interpolation=interpolation), dtype=np.uint8)
 
 
 def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
