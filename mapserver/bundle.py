@@ -28,6 +28,9 @@ from mapserver.errors import BundleError, BundleIncomplete
 from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
 
 MANIFEST = "bundle.yaml"
+# libyaml's loader when PyYAML was built with it: a manifest with a long trajectory parses
+# about ten times faster. Same safe subset of YAML either way.
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 BUNDLE_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
@@ -145,7 +148,7 @@ def _describe(error: ValidationError) -> str:
 def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
     """Parse and validate the text of ``bundle.yaml``; errors name the field."""
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_LOADER)
     except yaml.YAMLError as error:
         problem = " ".join(str(error).split())
         raise BundleError(f"not valid YAML: {problem}", file=source) from None
