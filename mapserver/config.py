@@ -70,7 +70,8 @@ class DiffConfig(_Frozen):
     """An absolute floor on a difference's area, on top of ``min_local_cells``."""
     max_misfit_tolerance_m: float = Field(0.5, ge=0)
     """Where local walls still sit off the global ones (drift not fully taken out, a wall seen
-    doubled on a revisit), the added tolerance grows with that misfit, up to this."""
+    doubled on a revisit), the tolerances grow with that misfit: the added one up to this, the
+    removed one by as much."""
     misfit_tile_m: float = Field(3.0, gt=0)
     """The misfit is measured over the walls of each tile of this size and its neighbours."""
     removed_tolerance_m: float = Field(0.25, ge=0)

@@ -85,6 +85,7 @@ def raw_differences(
     global_walls: BoolArray | None = None,
     unknown_is_wall: bool = True,
     added_tolerance_map: NDArray[np.float32] | None = None,
+    removed_tolerance_map: NDArray[np.float32] | None = None,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -111,6 +112,8 @@ def raw_differences(
     added_tolerance_map
         Optional (H, W) float32 metres: a per-cell tolerance for added cells, at least
         ``tolerance_m`` (see :func:`misfit_tolerance`).
+    removed_tolerance_map
+        The same for removed cells, at least ``removed_tolerance_m``.
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -148,6 +151,8 @@ def raw_differences(
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
+        if removed_tolerance_map is not None and removed.any():
+            removed &= distance_to(l_occ) * resolution > removed_tolerance_map[box]
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
 

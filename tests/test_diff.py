@@ -190,3 +190,16 @@ def test_misfit_tolerance_grows_only_where_local_walls_sit_off() -> None:
     )
     rows, _ = np.nonzero(d.added)
     assert set(rows) == set(range(20, 26))
+
+
+def test_removed_tolerance_map_widens_the_margin_per_cell() -> None:
+    g, loc, roi = _maps()
+    g[:, 48:51] = FREE
+    g[40:60, 60:66] = OCCUPIED  # a block ...
+    loc[40:60, 55] = OCCUPIED  # ... seen 0.25 m off (drift) with free space over it
+    plain = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
+    assert plain.removed[40:60, 60:66].sum() > 0
+    wide = np.full(g.shape, 0.15, np.float32)
+    wide[:, 50:] = 0.6  # where the local walls are known to sit off
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, removed_tolerance_map=wide)
+    assert not d.removed.any()
