@@ -106,8 +106,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _init_worker(setup: Callable[[], None] | None, daemon_pid: int) -> None:
+def _init_worker(setup: Callable[[], None] | None, daemon_pid: int, threads: int) -> None:
     _exit_with(daemon_pid)
+    # The pool already keeps every core busy: OpenCV's own threads on top would only contend.
+    import cv2
+
+    cv2.setNumThreads(threads)
     # Stopping is the parent's business: a Ctrl-C in a terminal reaches the whole process group,
     # and a worker that died of it would look like a crash.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -382,7 +386,11 @@ class Service:
             max_workers=self._workers,
             mp_context=context,
             initializer=_init_worker,
-            initargs=(self._worker_setup, os.getpid()),
+            initargs=(
+                self._worker_setup,
+                os.getpid(),
+                max(1, (os.cpu_count() or 1) // self._workers),
+            ),
         )
 
     def _warm_up(self) -> None:
