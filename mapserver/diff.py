@@ -84,8 +84,7 @@ def raw_differences(
     removed_tolerance_m: float | None = None,
     global_walls: BoolArray | None = None,
     unknown_is_wall: bool = True,
-    added_tolerance_map: NDArray[np.float32] | None = None,
-    removed_tolerance_map: NDArray[np.float32] | None = None,
+    extra_tolerance_m: NDArray[np.float32] | None = None,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -109,11 +108,9 @@ def raw_differences(
         A local wall within ``tolerance_m`` of the global map's unknown area is the edge of
         what the global map knows (its wall not drawn, or the robot saw it from another side),
         not a new obstacle.
-    added_tolerance_map
-        Optional (H, W) float32 metres: a per-cell tolerance for added cells, at least
-        ``tolerance_m`` (see :func:`misfit_tolerance`).
-    removed_tolerance_map
-        The same for removed cells, at least ``removed_tolerance_m``.
+    extra_tolerance_m
+        Optional (H, W) float32 metres added to both tolerances, cell by cell, where the maps
+        are known to fit less well (see :func:`misfit_tolerance`).
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -146,13 +143,14 @@ def raw_differences(
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~near(g_walls, ~(offset_distances(tol_px) > tol_px))
-        if added_tolerance_map is not None and added.any():
-            added &= distance_to(g_walls) * resolution > added_tolerance_map[box]
+        if extra_tolerance_m is not None and added.any():
+            added &= distance_to(g_walls) * resolution > tolerance_m + extra_tolerance_m[box]
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
-        if removed_tolerance_map is not None and removed.any():
-            removed &= distance_to(l_occ) * resolution > removed_tolerance_map[box]
+        if extra_tolerance_m is not None and removed.any():
+            margin = tolerance_m if removed_tolerance_m is None else removed_tolerance_m
+            removed &= distance_to(l_occ) * resolution > margin + extra_tolerance_m[box]
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
 
@@ -168,16 +166,16 @@ def misfit_tolerance(
     quantile: float = 0.8,
     min_walls: int = 30,
 ) -> NDArray[np.float32]:
-    """Per-cell tolerance for added obstacles: how far local walls sit from global walls nearby.
+    """Per-cell extra tolerance: how far local walls sit from global walls nearby.
 
     Where the alignment (with its drift correction) lays the local walls onto the global ones,
-    the tolerance stays ``base_m``; where they still sit off (drift that could not be taken out,
-    a wall seen doubled on a revisit), it grows to the ``quantile`` of the local walls' distance
-    to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``. Measured over
-    the walls in each tile of ``tile_m`` and its eight neighbours. Returns (H, W) float32
-    metres.
+    the tolerance stays ``base_m`` (extra 0); where they still sit off (drift that could not be
+    taken out, a wall seen doubled on a revisit), it grows to the ``quantile`` of the local
+    walls' distance to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``.
+    Measured over the walls in each tile of ``tile_m`` and its eight neighbours. Returns the
+    growth over ``base_m``: (H, W) float32 metres, 0 where the fit is good.
     """
-    tol = np.full(local_state.shape, base_m, np.float32)
+    tol = np.zeros(local_state.shape, np.float32)
     local_walls = local_state == OCCUPIED
     x, y, w, h = cv2.boundingRect(local_walls.view(np.uint8))
     if w == 0 or not global_walls.any():
@@ -218,9 +216,8 @@ def misfit_tolerance(
             near = np.concatenate(parts) if parts else values[:0]
             if len(near) >= min_walls:
                 q = float(np.quantile(near, quantile)) + base_m / 2
-                tol[i * tile : (i + 1) * tile, j * tile : (j + 1) * tile] = min(
-                    max(q, base_m), max_m
-                )
+                grown = min(max(q, base_m), max_m) - base_m
+                tol[i * tile : (i + 1) * tile, j * tile : (j + 1) * tile] = grown
     return tol
 
 

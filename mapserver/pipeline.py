@@ -305,11 +305,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             tolerance_m=d.tolerance_m,
             removed_tolerance_m=d.removed_tolerance_m,
             global_walls=view.structure,
-            added_tolerance_map=tolerance_map,
-            # Removed cells keep their wider margin on top of the same misfit.
-            removed_tolerance_map=None
-            if tolerance_map is None
-            else tolerance_map + np.float32(d.removed_tolerance_m - d.tolerance_m),
+            extra_tolerance_m=tolerance_map,
         )
         min_px = max(
             1, round(settings.diff.min_local_cells * (local.resolution / grid.resolution) ** 2)

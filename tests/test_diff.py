@@ -179,27 +179,27 @@ def test_misfit_tolerance_grows_only_where_local_walls_sit_off() -> None:
     tol = misfit_tolerance(
         loc, g_walls, resolution=RES, base_m=0.15, max_m=0.5, tile_m=1.0, min_walls=10
     )
-    assert tol[60, 10] == pytest.approx(0.15)
-    assert tol[60, 230] == pytest.approx(0.30 + 0.075, abs=0.01)
+    assert tol[60, 10] == pytest.approx(0.0)
+    assert tol[60, 230] == pytest.approx(0.30 + 0.075 - 0.15, abs=0.01)
     # The doubled wall is then not "added"; a box far from any wall still is.
     g = np.full(shape, FREE, np.uint8)
     g[g_walls] = OCCUPIED
     loc[20:26, 200:206] = OCCUPIED
     d = raw_differences(
-        g, loc, np.ones(shape, bool), resolution=RES, tolerance_m=0.15, added_tolerance_map=tol
+        g, loc, np.ones(shape, bool), resolution=RES, tolerance_m=0.15, extra_tolerance_m=tol
     )
     rows, _ = np.nonzero(d.added)
     assert set(rows) == set(range(20, 26))
 
 
-def test_removed_tolerance_map_widens_the_margin_per_cell() -> None:
+def test_extra_tolerance_widens_the_removed_margin_per_cell() -> None:
     g, loc, roi = _maps()
     g[:, 48:51] = FREE
     g[40:60, 60:66] = OCCUPIED  # a block ...
     loc[40:60, 55] = OCCUPIED  # ... seen 0.25 m off (drift) with free space over it
     plain = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15)
     assert plain.removed[40:60, 60:66].sum() > 0
-    wide = np.full(g.shape, 0.15, np.float32)
-    wide[:, 50:] = 0.6  # where the local walls are known to sit off
-    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, removed_tolerance_map=wide)
+    wide = np.zeros(g.shape, np.float32)
+    wide[:, 50:] = 0.45  # where the local walls are known to sit off
+    d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, extra_tolerance_m=wide)
     assert not d.removed.any()
