@@ -66,11 +66,44 @@ class GlobalView:
         """(col, row) of the nearest global wall cell, for every cell (indexed as (H, W, 2))."""
         return NearestWall.of(self.structure)
 
+    def nearest_wall_near(self, points_xy: FloatArray, *, reach_m: float) -> NearestWall:
+        """:attr:`nearest_wall`, computed only over the box that holds ``points_xy`` (nav2
+        metres) and ``reach_m`` around them (the correspondences ICP and the drift estimate can
+        use). Cached; a box outside the cached one is computed again, as their union."""
+        k = math.ceil(reach_m / self.grid.resolution) + 2
+        px = self.grid.to_pixel(points_xy)
+        box = (
+            max(int(np.floor(px[:, 1].min())) - k, 0),
+            max(int(np.floor(px[:, 0].min())) - k, 0),
+            min(int(np.ceil(px[:, 1].max())) + k + 1, self.grid.height),
+            min(int(np.ceil(px[:, 0].max())) + k + 1, self.grid.width),
+        )
+        if "nearest_wall" in self.__dict__:
+            return self.nearest_wall
+        cached: NearestWall | None = self.__dict__.get("_nearest_box")
+        if cached is not None and cached.covers(box):
+            return cached
+        # Room to spare: the drift estimate asks next, for the same walls with a longer reach.
+        spare = math.ceil(2.5 / self.grid.resolution)
+        box = (
+            max(box[0] - spare, 0),
+            max(box[1] - spare, 0),
+            min(box[2] + spare, self.grid.height),
+            min(box[3] + spare, self.grid.width),
+        )
+        if cached is not None:
+            r0, c0 = cached._origin
+            h, w = cached._labels.shape
+            box = (min(box[0], r0), min(box[1], c0), max(box[2], r0 + h), max(box[3], c0 + w))
+        field = NearestWall.of(self.structure, box)
+        self.__dict__["_nearest_box"] = field
+        return field
+
     def drop_search_fields(self) -> None:
         """Forget the fields built for alignment and drift (nearest walls, near-wall masks,
         distances, search levels): the later stages read only ``state`` and ``structure``.
         Frees their memory (4 bytes a cell and more); they are built again if asked for."""
-        for key in ("nearest_wall", "distance_px", "_near", "_levels"):
+        for key in ("nearest_wall", "_nearest_box", "distance_px", "_near", "_levels"):
             self.__dict__.pop(key, None)
 
     def level(self, resolution: float, pad: int) -> _Level:
@@ -421,33 +454,72 @@ class NearestWall:
     cell, mostly never read).
     """
 
-    def __init__(self, labels: NDArray[np.int32], table: FloatArray) -> None:
+    def __init__(
+        self,
+        labels: NDArray[np.int32],
+        table: FloatArray,
+        *,
+        shape: tuple[int, int] | None = None,
+        origin: tuple[int, int] = (0, 0),
+    ) -> None:
         self._labels = labels
         self._table = table
-        self.shape = (*labels.shape, 2)
+        self._origin = origin
+        self.shape = (*(shape or labels.shape), 2)
 
     @staticmethod
-    def of(structure: NDArray[np.bool_]) -> NearestWall:
+    def of(
+        structure: NDArray[np.bool_], box: tuple[int, int, int, int] | None = None
+    ) -> NearestWall:
+        """The field over ``structure``, or only over ``box`` = (row0, col0, row1, col1) of it
+        (cells outside the box then have no nearest wall: it reads as infinitely far)."""
+        r0, c0, r1, c1 = box or (0, 0, *structure.shape)
+        part = np.ascontiguousarray(structure[r0:r1, c0:c1])
         _, labels = cv2.distanceTransformWithLabels(
-            (~structure).view(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+            (~part).view(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
         )
         # Labels of zero pixels are numbered in row-major scan order, starting at 1.
-        cells = cv2.findNonZero(structure.view(np.uint8))
-        table = np.zeros(((0 if cells is None else len(cells)) + 1, 2))
+        cells = cv2.findNonZero(part.view(np.uint8))
+        # Label 0 (no wall in the box at all) reads as a wall infinitely far away.
+        table = np.full(((0 if cells is None else len(cells)) + 1, 2), 1e9)
         if cells is not None:
-            table[1:] = cells.reshape(-1, 2)  # (col, row), row-major as the labels
-        return NearestWall(np.asarray(labels, np.int32), table)
+            table[1:] = cells.reshape(-1, 2) + np.array([c0, r0])  # (col, row) on the grid
+        return NearestWall(
+            np.asarray(labels, np.int32),
+            table,
+            shape=(structure.shape[0], structure.shape[1]),
+            origin=(r0, c0),
+        )
 
     def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
         rows, cols = index
-        return np.asarray(self._table[self._labels[rows, cols]])
+        r0, c0 = self._origin
+        if (r0, c0) == (0, 0) and self._labels.shape == self.shape[:2]:
+            return np.asarray(self._table[self._labels[rows, cols]])
+        r, c = rows - r0, cols - c0
+        h, w = self._labels.shape
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        label = np.zeros(len(r), np.int64)
+        label[inside] = self._labels[r[inside], c[inside]]
+        out = np.asarray(self._table[label])
+        out[~inside] = 1e9
+        return out
+
+    def covers(self, box: tuple[int, int, int, int]) -> bool:
+        r0, c0 = self._origin
+        h, w = self._labels.shape
+        return box[0] >= r0 and box[1] >= c0 and box[2] <= r0 + h and box[3] <= c0 + w
 
     def in_metres(self, grid: Grid) -> NearestWall:
         """The same field giving the nearest wall cell's centre (x, y) on ``grid`` instead of
         its (col, row): ``grid.to_world`` done once per wall cell (and kept), not per lookup."""
         cache: dict[Grid, NearestWall] = self.__dict__.setdefault("_in_metres", {})
         if grid not in cache:
-            cache[grid] = NearestWall(self._labels, grid.to_world(self._table))
+            table = grid.to_world(self._table)
+            table[0] = 1e9  # no wall in the box: infinitely far, in metres too
+            cache[grid] = NearestWall(
+                self._labels, table, shape=self.shape[:2], origin=self._origin
+            )
         return cache[grid]
 
 
@@ -646,8 +718,11 @@ def align(
             pivot=None if pivot_slam is None else np.asarray(pivot_slam, dtype=float),
         )
         polished: list[tuple[float, Transform2D]] = []
+        nearest = view.nearest_wall_near(
+            np.concatenate([t.apply(icp_walls) for t in found]), reach_m=icp_reach + 0.5
+        )
         for t in found:
-            t = icp(icp_walls, t, view.grid, view.nearest_wall, max_distance_m=icp_reach)
+            t = icp(icp_walls, t, view.grid, nearest, max_distance_m=icp_reach)
             if all(_distance(t, u, centre, radius) > 0.05 for _, u in polished):
                 polished.append((agree(t), t))
         # The consistency check warps the whole local map: only for the likeliest few.
@@ -669,9 +744,8 @@ def align(
         if wide_score > chosen_score + min_gain:
             chosen_score, chosen = wide_score, wide
     # A last polish with every wall cell, not only the thinned ones.
-    final = icp(
-        walls, chosen, view.grid, view.nearest_wall, max_distance_m=icp_reach / 2, iterations=8
-    )
+    nearest = view.nearest_wall_near(chosen.apply(walls), reach_m=icp_reach)
+    final = icp(walls, chosen, view.grid, nearest, max_distance_m=icp_reach / 2, iterations=8)
     final_score = score(final)
     if final_score >= chosen_score:
         chosen_score, chosen = final_score, final

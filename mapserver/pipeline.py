@@ -255,6 +255,9 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             walls = align_stage.thin_points(
                 align_stage.known_points(local, state=OCCUPIED), 2 * grid.resolution
             )
+            nearest = view.nearest_wall_near(
+                transform.apply(walls), reach_m=2 * a.deform_max_shift_m + 0.5
+            )
             # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
             fields: list[deform.DriftField] = []
             for tile_m, max_shift_m in _drift_passes(
@@ -265,7 +268,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
                         walls,
                         transform,
                         grid,
-                        view.nearest_wall,
+                        nearest,
                         tile_m=tile_m,
                         max_shift_m=max_shift_m,
                         initial=deform.DriftStack(tuple(fields)) if fields else None,

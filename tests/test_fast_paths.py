@@ -354,3 +354,23 @@ def test_structure_mask_is_the_plain_rule(seed: int) -> None:
     level = level_grey + 0.2 * (255 - level_grey)
     expected = (m.state == OCCUPIED) | (occupancy >= level)
     assert np.array_equal(structure_mask(m), expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_nearest_wall_on_a_box_is_the_full_field_inside_it(seed: int) -> None:
+    from mapserver.align import NearestWall
+
+    rng = np.random.default_rng(seed)
+    structure = rng.random((120, 150)) < 0.01
+    full = NearestWall.of(structure)
+    boxed = NearestWall.of(structure, (20, 30, 90, 120))
+    rows, cols = np.mgrid[0:120, 0:150]
+    rows, cols = rows.ravel(), cols.ravel()
+    got, want = boxed[rows, cols], full[rows, cols]
+    inside = (rows >= 20) & (rows < 90) & (cols >= 30) & (cols < 120)
+    # Inside the box, far enough from its edge that no nearer wall can lie outside it.
+    d_edge = np.minimum.reduce([rows - 20, 89 - rows, cols - 30, 119 - cols])
+    d_wall = np.hypot(*(want - np.stack([cols, rows], 1)).T)
+    sure = inside & (d_wall < d_edge)
+    assert np.array_equal(got[sure], want[sure])
+    assert (got[~inside] >= 1e9).all()
