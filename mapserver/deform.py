@@ -69,7 +69,16 @@ class DriftStack:
         return out
 
     def max_shift_m(self) -> float:
-        return sum(f.max_shift_m() for f in self.fields)
+        """The largest combined shift, read at the nodes of the finest field."""
+        if not self.fields:
+            return 0.0
+        finest = min(self.fields, key=lambda f: f.spacing)
+        rows, cols = finest.shifts.shape[:2]
+        jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
+        nodes = np.stack(
+            [finest.x0 + jj.ravel() * finest.spacing, finest.y0 + ii.ravel() * finest.spacing], 1
+        )
+        return float(np.hypot(*self.at(nodes).T).max())
 
 
 def _fill_missing(values: NDArray[np.float32], valid: NDArray[np.bool_]) -> NDArray[np.float32]:

@@ -402,6 +402,8 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             "refined": alignment.refined,
             "score": round(alignment.score, 3),
             "prior_score": round(alignment.prior_score, 3),
+            # The largest slam-drift correction applied on top of the rigid transform, metres.
+            "drift_m": round(drift.max_shift_m(), 3) if drift is not None else 0.0,
         },
         "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
         "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],

@@ -203,3 +203,16 @@ def test_extra_tolerance_widens_the_removed_margin_per_cell() -> None:
     wide[:, 50:] = 0.45  # where the local walls are known to sit off
     d = raw_differences(g, loc, roi, resolution=RES, tolerance_m=0.15, extra_tolerance_m=wide)
     assert not d.removed.any()
+
+
+def test_drift_stack_adds_fields_and_reports_the_largest_combined_shift() -> None:
+    from mapserver.deform import DriftField, DriftStack
+
+    coarse = DriftField(0.0, 0.0, 10.0, np.full((3, 3, 2), [0.3, 0.0], np.float32))
+    fine_shifts = np.zeros((5, 5, 2), np.float32)
+    fine_shifts[2, 2] = [0.1, 0.0]
+    fine = DriftField(0.0, 0.0, 5.0, fine_shifts)
+    stack = DriftStack((coarse, fine))
+    got = stack.at(np.array([[10.0, 10.0], [0.0, 0.0]]))
+    assert got == pytest.approx(np.array([[0.4, 0.0], [0.3, 0.0]]))
+    assert stack.max_shift_m() == pytest.approx(0.4)
