@@ -83,7 +83,7 @@ TARGET_RSS_FACTOR, TARGET_RSS_EXTRA_MIB = 3, 150
 TARGET_SCALING = 2.0
 TARGET_DRAIN = 0.8
 
-# The data's recipe; a change here (or in synth.py) makes --out regenerate the data.
+# The data's recipe; a change here (or in the synth package) makes --out regenerate the data.
 RECIPE: dict[str, Any] = {
     "version": 2,
     "airport": {"seed": 4242, "session_seed": 7, "route_m": 200.0, "changes": [4, 3, 2]},
@@ -140,7 +140,8 @@ class Data:
 
 
 def _recipe_stamp() -> str:
-    text = json.dumps(RECIPE, sort_keys=True) + Path(synth.__file__).read_text()
+    sources = sorted(Path(synth.__file__).parent.glob("*.py"))
+    text = json.dumps(RECIPE, sort_keys=True) + "".join(p.read_text() for p in sources)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
