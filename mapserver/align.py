@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cached_property
 
 import cv2
 import numpy as np
@@ -44,32 +43,24 @@ class GlobalView:
     state: NDArray[np.uint8]
     structure: NDArray[np.bool_]
 
-    @cached_property
-    def distance_px(self) -> NDArray[np.float32]:
-        """Distance in pixels from every cell to the nearest global wall."""
-        return _distance_field(self.structure)
-
     def near_walls(self, tolerance_m: float) -> NDArray[np.bool_]:
-        """Cells within ``tolerance_m`` of a global wall: ``distance_px * resolution <=
+        """Cells within ``tolerance_m`` of a global wall: ``distance * resolution <=
         tolerance_m`` cell for cell, by a dilation (cheaper, and a byte a cell, not four).
         Cached per tolerance."""
         cache: dict[float, NDArray[np.bool_]] = self.__dict__.setdefault("_near", {})
         if tolerance_m not in cache:
             res = self.grid.resolution
-            # As agreement() reads it: the float32 distance, in float64, times the resolution.
+            # The float32 chamfer distance, in float64, times the resolution: as thresholding
+            # the distance transform of the walls would read it.
             reach = offset_distances(tolerance_m / res).astype(np.float64)
             cache[tolerance_m] = near(self.structure, ~(reach * res > tolerance_m))
         return cache[tolerance_m]
 
-    @cached_property
-    def nearest_wall(self) -> NearestWall:
-        """(col, row) of the nearest global wall cell, for every cell (indexed as (H, W, 2))."""
-        return NearestWall.of(self.structure)
-
     def nearest_wall_near(self, points_xy: FloatArray, *, reach_m: float) -> NearestWall:
-        """:attr:`nearest_wall`, computed only over the box that holds ``points_xy`` (nav2
-        metres) and ``reach_m`` around them (the correspondences ICP and the drift estimate can
-        use). Cached; a box outside the cached one is computed again, as their union."""
+        """The (col, row) of the nearest global wall cell (a :class:`NearestWall`), computed
+        only over the box that holds ``points_xy`` (nav2 metres) and ``reach_m`` around them
+        (the correspondences ICP and the drift estimate can use). Cached; a box outside the
+        cached one is computed again, as their union."""
         k = math.ceil(reach_m / self.grid.resolution) + 2
         px = self.grid.to_pixel(points_xy)
         box = (
@@ -78,8 +69,6 @@ class GlobalView:
             min(int(np.ceil(px[:, 1].max())) + k + 1, self.grid.height),
             min(int(np.ceil(px[:, 0].max())) + k + 1, self.grid.width),
         )
-        if "nearest_wall" in self.__dict__:
-            return self.nearest_wall
         cached: NearestWall | None = self.__dict__.get("_nearest_box")
         if cached is not None and cached.covers(box):
             return cached
@@ -103,7 +92,7 @@ class GlobalView:
         """Forget the fields built for alignment and drift (nearest walls, near-wall masks,
         distances, search levels): the later stages read only ``state`` and ``structure``.
         Frees their memory (4 bytes a cell and more); they are built again if asked for."""
-        for key in ("nearest_wall", "_nearest_box", "distance_px", "_near", "_levels"):
+        for key in ("_nearest_box", "_near", "_levels"):
             self.__dict__.pop(key, None)
 
     def level(self, resolution: float, pad: int) -> _Level:
@@ -292,15 +281,13 @@ def agreement(
     points_slam: FloatArray,
     nav2_from_slam: Transform2D,
     grid: Grid,
-    distance_px: NDArray[np.float32],
-    *,
-    tolerance_m: float,
+    near_walls: NDArray[np.bool_],
 ) -> float:
-    """Share of local wall points that land within ``tolerance_m`` of a global wall."""
+    """Share of local wall points that land on ``near_walls`` (the cells within the tolerance
+    of a global wall, :meth:`GlobalView.near_walls`)."""
     if len(points_slam) == 0:
         return 0.0
-    d = _lookup(distance_px, grid, nav2_from_slam.apply(points_slam), fill=1e6)
-    return float(np.mean(d * grid.resolution <= tolerance_m))
+    return float(np.mean(_lookup(near_walls, grid, nav2_from_slam.apply(points_slam), fill=False)))
 
 
 def consistency(
@@ -674,10 +661,7 @@ def align(
     near_walls = view.near_walls(tolerance_m)
 
     def agree(t: Transform2D) -> float:
-        # agreement(walls, t, view.grid, view.distance_px, ...), from the thresholded field.
-        if len(walls) == 0:
-            return 0.0
-        return float(np.mean(_lookup(near_walls, view.grid, t.apply(walls), fill=False)))
+        return agreement(walls, t, view.grid, near_walls)
 
     def score(t: Transform2D, p: float | None = None) -> float:
         p = agree(t) if p is None else p

@@ -12,6 +12,7 @@ from mapserver import deform, roi
 from mapserver.align import (
     GlobalView,
     NearestWall,
+    _distance_field,
     consistency,
     structure_mask,
     thin_points,
@@ -311,8 +312,8 @@ def test_near_walls_is_the_thresholded_distance_field(seed: int, tolerance_m: fl
     grid = Grid(0.0, 0.0, 0.05, 130, 110)
     structure = _walls(seed, grid.shape, 0.01)
     view = GlobalView(grid, np.full(grid.shape, FREE, np.uint8), structure)
-    # As agreement() reads the distance field: float32 values in a float64 array.
-    expected = view.distance_px.astype(np.float64) * grid.resolution <= tolerance_m
+    # The distance field's float32 values in a float64 array, thresholded.
+    expected = _distance_field(structure).astype(np.float64) * grid.resolution <= tolerance_m
     assert np.array_equal(view.near_walls(tolerance_m), expected)
 
 
