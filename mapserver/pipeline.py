@@ -294,7 +294,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         if d.max_misfit_tolerance_m > d.tolerance_m:
             tolerance_map = diff_stage.misfit_tolerance(
                 local_state,
-                (view.state == OCCUPIED) | view.structure,
+                view.structure,  # the global walls: occupied cells and grey-drawn ones
                 resolution=grid.resolution,
                 base_m=d.tolerance_m,
                 max_m=d.max_misfit_tolerance_m,
