@@ -150,15 +150,9 @@ def f1_from(precision: float, recall: float) -> float:
 
 
 @dataclass(frozen=True)
-class BundleScore:
-    """The score of one bundle. Counts are over differences, except ``n_observed`` and
-    ``n_matched`` (observed structural changes, and those matched by at least one difference).
+class _Counts:
+    """What a score counts, and the ratios derived from the counts (one bundle or a total)."""
 
-    ``n_correct + n_neutral + n_false_positive == n_differences``.
-    """
-
-    status: str
-    """The result's ``status``, or ``"missing"`` when there was no result."""
     n_differences: int
     n_correct: int
     n_neutral: int
@@ -167,15 +161,6 @@ class BundleScore:
     n_matched: int
     n_fragments: int
     n_kind_correct: int
-    alignment_error_m: float | None = None
-    alignment_error_rad: float | None = None
-    differences: tuple[DifferenceScore, ...] = ()
-    unmatched_change_ids: tuple[ChangeId, ...] = ()
-    """Observed structural changes that no difference matched."""
-
-    @property
-    def failed(self) -> bool:
-        return self.status != "ok"
 
     @property
     def precision(self) -> float:
@@ -192,6 +177,27 @@ class BundleScore:
     @property
     def kind_accuracy(self) -> float | None:
         return self.n_kind_correct / self.n_correct if self.n_correct else None
+
+
+@dataclass(frozen=True)
+class BundleScore(_Counts):
+    """The score of one bundle. Counts are over differences, except ``n_observed`` and
+    ``n_matched`` (observed structural changes, and those matched by at least one difference).
+
+    ``n_correct + n_neutral + n_false_positive == n_differences``.
+    """
+
+    status: str
+    """The result's ``status``, or ``"missing"`` when there was no result."""
+    alignment_error_m: float | None = None
+    alignment_error_rad: float | None = None
+    differences: tuple[DifferenceScore, ...] = ()
+    unmatched_change_ids: tuple[ChangeId, ...] = ()
+    """Observed structural changes that no difference matched."""
+
+    @property
+    def failed(self) -> bool:
+        return self.status != "ok"
 
 
 # --------------------------------------------------------------------------------------------
@@ -564,7 +570,7 @@ def score_bundle(
 
 
 @dataclass(frozen=True)
-class Summary:
+class Summary(_Counts):
     """Totals over bundles: counts summed, ratios from the sums (micro averages).
 
     Alignment statistics are over the bundles that have an alignment error (not failures);
@@ -573,34 +579,10 @@ class Summary:
 
     n_bundles: int
     n_failures: int
-    n_differences: int
-    n_correct: int
-    n_neutral: int
-    n_false_positive: int
-    n_observed: int
-    n_matched: int
-    n_fragments: int
-    n_kind_correct: int
     alignment_error_median_m: float | None
     alignment_error_p90_m: float | None
     alignment_error_median_rad: float | None
     alignment_error_p90_rad: float | None
-
-    @property
-    def precision(self) -> float:
-        return precision_from_counts(self.n_correct, self.n_false_positive)
-
-    @property
-    def recall(self) -> float:
-        return recall_from_counts(self.n_matched, self.n_observed)
-
-    @property
-    def f1(self) -> float:
-        return f1_from(self.precision, self.recall)
-
-    @property
-    def kind_accuracy(self) -> float | None:
-        return self.n_kind_correct / self.n_correct if self.n_correct else None
 
 
 def _percentile(values: Sequence[float], q: float) -> float | None:
