@@ -1,14 +1,20 @@
-"""DBSCAN (scikit-learn) over difference pixels -> obstacles in metres (nav2 frame).
+"""DBSCAN over difference pixels -> obstacles in metres (nav2 frame).
 
-scikit-learn is imported on first use, not with this module: with scipy it takes about 0.75 s,
-most of a process's start-up, and the daemon's main process and ``check-config`` never cluster.
-The daemon's worker processes import it once, when they start (forkserver preload).
+Two engines give the same labels. The points are pixel centres of one grid, so the default
+``grid`` engine runs DBSCAN on the grid itself: neighbours are a fixed set of pixel offsets,
+counted and joined with array lookups instead of a spatial index. ``scikit-learn`` runs
+scikit-learn's DBSCAN on the pixel centres in metres; it is the reference the tests hold the grid
+engine to, and importing it (with scipy) costs about 0.7 s and 95 MiB per process, more than
+processing an airport-sized bundle does. The grid engine's labels are scikit-learn's: the same
+clusters, numbered the same way, border points given to the same cluster. Only pixels exactly
+``eps`` apart, which scikit-learn counts as neighbours or not depending on the floating-point
+rounding of their coordinates, are always neighbours here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -17,6 +23,8 @@ from numpy.typing import NDArray
 from mapserver.grid import Grid
 
 IntArray = NDArray[np.intp]
+Engine = Literal["grid", "scikit-learn"]
+ENGINES: tuple[Engine, ...] = ("grid", "scikit-learn")
 
 
 @dataclass(frozen=True)
@@ -45,13 +53,14 @@ def cluster_mask(
     min_area_m2: float = 0.0,
     evidence: NDArray[np.bool_] | None = None,
     min_evidence: float = 0.5,
+    engine: Engine = "grid",
 ) -> list[Difference]:
     """Group the True pixels of ``mask`` (on ``grid``) into obstacles with DBSCAN.
 
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_pixels`` or ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
-    its pixels are in it.
+    its pixels are in it. ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
     # The True pixels, row-major, found in their bounding box (a difference mask is sparse).
     x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
@@ -60,7 +69,13 @@ def cluster_mask(
     rows, cols = np.nonzero(mask[y : y + h, x : x + w])
     rows, cols = rows + y, cols + x
     xy = grid.to_world(np.stack([cols, rows], axis=1))
-    labels = _dbscan()(eps=eps_m, min_samples=min_samples).fit_predict(xy)
+    if engine == "scikit-learn":
+        labels = _sklearn_dbscan()(eps=eps_m, min_samples=min_samples).fit_predict(xy)
+    elif engine == "grid":
+        offsets = neighbour_offsets(eps_m, grid.resolution)
+        labels = dbscan_pixels(rows, cols, neighbours=offsets, min_samples=min_samples)
+    else:
+        raise ValueError(f"unknown DBSCAN engine {engine!r}; use one of {', '.join(ENGINES)}")
     half = grid.resolution / 2.0
     out = []
     for label in np.unique(labels):
@@ -87,11 +102,134 @@ def cluster_mask(
     return out
 
 
-def _dbscan() -> Any:
-    """scikit-learn's DBSCAN class, imported on first use."""
+def _sklearn_dbscan() -> Any:
+    """scikit-learn's DBSCAN class, imported on first use (never, with the grid engine)."""
     from sklearn.cluster import DBSCAN
 
     return DBSCAN
+
+
+def neighbour_offsets(eps_m: float, resolution: float) -> IntArray:
+    """(K, 2) ``(d_row, d_col)`` of the pixels whose centres lie within ``eps_m`` of a pixel's
+    centre on a grid of ``resolution`` metres, itself included. A relative 1e-9 of slack makes
+    pixels exactly ``eps_m`` apart neighbours, whatever the rounding."""
+    if not (eps_m > 0 and resolution > 0):
+        raise ValueError(f"eps_m and resolution must be > 0, got {eps_m} and {resolution}")
+    k = int(eps_m / resolution * (1 + 1e-9))
+    dr, dc = np.mgrid[-k : k + 1, -k : k + 1]
+    inside = (dr**2 + dc**2) * resolution**2 <= eps_m**2 * (1 + 1e-9)
+    return np.stack([dr[inside], dc[inside]], axis=1)
+
+
+def dbscan_pixels(
+    rows: IntArray, cols: IntArray, *, neighbours: IntArray, min_samples: int
+) -> IntArray:
+    """DBSCAN labels (-1 for noise) of pixels ``(rows, cols)`` given in row-major order.
+
+    ``neighbours`` are the offsets within ``eps`` (:func:`neighbour_offsets`). A pixel with at
+    least ``min_samples`` pixels among its neighbours (itself included) is a core pixel; core
+    pixels within reach of each other form a cluster; a border pixel (not core, a core pixel
+    within reach) joins the first cluster that reaches it. As in scikit-learn, clusters are
+    numbered in the order of their first core pixel, and "first" is the lowest number.
+    """
+    n = len(rows)
+    labels = np.full(n, -1, np.intp)
+    if n == 0:
+        return labels
+    k = int(np.abs(neighbours).max())
+    # Pixels on a padded box around them, so that every neighbour lookup is inside, with wide
+    # empty bands squeezed out: scattered differences need a small box, not the whole view.
+    r, c = _squeezed(rows, k), _squeezed(cols, k)
+    shape = (int(r.max()) + k + 1, int(c.max()) + k + 1)
+    present = np.zeros(shape, np.uint8)
+    present[r, c] = 1
+    count = np.zeros(n, np.int32)
+    for dr, dc in neighbours:
+        count += present[r + dr, c + dc]
+    core = count >= min_samples
+    if not core.any():
+        return labels
+
+    # Core pixels: first the components the grid's own connectivity already joins (neighbours
+    # when within reach), then the joins across the remaining offsets.
+    core_image = np.zeros(shape, np.uint8)
+    core_image[r[core], c[core]] = 1
+    within = {(int(a), int(b)) for a, b in neighbours}
+    ring8 = {(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)} - {(0, 0)}
+    ring4 = {(-1, 0), (1, 0), (0, -1), (0, 1)}
+    connectivity = 8 if ring8 <= within else 4 if ring4 <= within else 0
+    cr, cc = r[core], c[core]
+    if connectivity:
+        n_comp, components = cv2.connectedComponents(core_image, connectivity=connectivity)
+        joined = ring8 if connectivity == 8 else ring4
+    else:
+        n_comp = int(core.sum()) + 1
+        components = np.zeros(shape, np.int32)
+        components[cr, cc] = np.arange(1, n_comp)
+        joined = set()
+    own = components[cr, cc]
+    pairs = []
+    for dr, dc in neighbours:
+        if (dr, dc) <= (0, 0) or (int(dr), int(dc)) in joined:
+            continue  # half the offsets are enough: the relation is symmetric
+        other = components[cr + dr, cc + dc]
+        across = (other > 0) & (other != own)
+        pairs.append(np.stack([own[across], other[across]], axis=1))
+    roots = _smallest_connected(
+        n_comp, np.concatenate(pairs) if pairs else np.zeros((0, 2), np.intp)
+    )
+    cluster_of_core = roots[own]
+    # Number the clusters by their first core pixel (the points are in row-major order).
+    _, first = np.unique(cluster_of_core, return_index=True)
+    number = np.zeros(n_comp, np.intp)
+    number[cluster_of_core[np.sort(first)]] = np.arange(len(first))
+    labels[core] = number[cluster_of_core]
+
+    # Border pixels: the lowest-numbered cluster with a core pixel within reach.
+    cluster_image = np.zeros(shape, np.int32)
+    cluster_image[cr, cc] = labels[core] + 1
+    border = np.flatnonzero(~core)
+    if len(border):
+        br, bc = r[border], c[border]
+        none = np.iinfo(np.int32).max
+        best = np.full(len(border), none, np.int32)
+        for dr, dc in neighbours:
+            near = cluster_image[br + dr, bc + dc]
+            best = np.minimum(best, np.where(near > 0, near, none))
+        reached = best < none
+        labels[border[reached]] = best[reached] - 1
+    return labels
+
+
+def _squeezed(values: IntArray, k: int) -> IntArray:
+    """``values`` moved to ``k`` and up, with every gap between them wider than ``2 k + 1``
+    narrowed to that: values up to ``k`` apart keep their difference, values further apart stay
+    further apart, and nothing else ever lands within ``k`` of a value."""
+    distinct, index = np.unique(values, return_inverse=True)
+    gaps = np.minimum(np.diff(distinct), 2 * k + 1)
+    return np.asarray(np.concatenate([[0], np.cumsum(gaps)])[index] + k, dtype=np.intp)
+
+
+def _smallest_connected(n: int, edges: NDArray[np.integer]) -> IntArray:
+    """For nodes ``0..n-1`` joined by ``edges`` (E, 2): the smallest node of each one's
+    connected part (the minimum label, spread along the edges with pointer jumping)."""
+    label = np.arange(n)
+    if len(edges) == 0:
+        return label
+    a, b = np.unique(edges, axis=0).T.astype(np.intp)
+    while True:
+        la, lb = label[a], label[b]
+        if np.array_equal(la, lb):
+            return label
+        low = np.minimum(la, lb)
+        # Hook each label onto the smaller one it meets, then shortcut the chains.
+        np.minimum.at(label, la, low)
+        np.minimum.at(label, lb, low)
+        while True:
+            jumped = label[label]
+            if np.array_equal(jumped, label):
+                break
+            label = jumped
 
 
 def sort_by_area(differences: list[Difference]) -> list[Difference]:

@@ -90,6 +90,9 @@ class DiffConfig(_Frozen):
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)
+    cluster_engine: Literal["grid", "scikit-learn"] = "grid"
+    """The DBSCAN implementation; both give the same labels. ``scikit-learn`` costs about 0.7 s
+    and 95 MiB per process to import."""
 
 
 class RenderConfig(_Frozen):

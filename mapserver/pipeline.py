@@ -351,6 +351,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
                 min_area_m2=min_area,
                 evidence=evidence,
                 min_evidence=d.removed_evidence_share,
+                engine=d.cluster_engine,
             )
         return cluster_stage.sort_by_area(found)
 

@@ -381,7 +381,10 @@ class Service:
         # runs, and fork() with threads can copy a held lock into the child. The server imports
         # the pipeline once; every worker (also those replacing a crashed pool) forks from it.
         context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(["mapserver.pipeline", "sklearn.cluster"])
+        preload = ["mapserver.pipeline"]
+        if self._config.pipeline.diff.cluster_engine == "scikit-learn":
+            preload.append("sklearn.cluster")
+        context.set_forkserver_preload(preload)
         return ProcessPoolExecutor(
             max_workers=self._workers,
             mp_context=context,

@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from worlds import cut_local, office
 
-from mapserver.cluster import cluster_mask, sort_by_area
+from mapserver.cluster import (
+    ENGINES,
+    Engine,
+    cluster_mask,
+    dbscan_pixels,
+    neighbour_offsets,
+    sort_by_area,
+)
 from mapserver.deform import warp_local
 from mapserver.diff import DiffMasks, drop_small, filter_noise, raw_differences
 from mapserver.geometry import Transform2D
@@ -89,13 +97,14 @@ def test_noise_filter_drops_specks_and_keeps_thin_lines() -> None:
     assert d.added.sum() == 20 and d.removed.sum() == 20
 
 
-def test_cluster_reports_metres_in_the_grid_frame() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_cluster_reports_metres_in_the_grid_frame(engine: Engine) -> None:
     grid = Grid(10.0, -5.0, 0.05, 100, 100)
     mask = np.zeros(grid.shape, bool)
     mask[10:20, 20:40] = True  # 0.5 m x 1.0 m block
     mask[70:74, 70:74] = True  # 0.2 m x 0.2 m block
     found = sort_by_area(
-        cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=3, min_area_m2=0.01)
+        cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=3, min_area_m2=0.01, engine=engine)
     )
     assert [d.pixels for d in found] == [200, 16]
     big = found[0]
@@ -106,14 +115,64 @@ def test_cluster_reports_metres_in_the_grid_frame() -> None:
     assert big.centroid == pytest.approx((11.5, -0.75))
 
 
-def test_cluster_merges_fragments_closer_than_eps() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_cluster_merges_fragments_closer_than_eps(engine: Engine) -> None:
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     mask = np.zeros(grid.shape, bool)
     mask[10:14, 10:14] = True
     mask[10:14, 17:21] = True  # 3 px = 0.15 m gap
     mask[60:64, 60:64] = True
-    found = cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3)
+    found = cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3, engine=engine)
     assert len(found) == 2
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_grid_dbscan_labels_are_scikit_learns(seed: int) -> None:
+    from sklearn.cluster import DBSCAN
+
+    rng = np.random.default_rng(seed)
+    canvas = (rng.random((140, 180)) < rng.choice([0.003, 0.02, 0.1])).astype(np.uint8)
+    for _ in range(6):  # obstacles: blobs and strokes, some touching, some eps apart
+        centre = (int(rng.integers(0, 180)), int(rng.integers(0, 140)))
+        cv2.circle(canvas, centre, int(rng.integers(1, 6)), 1, -1)
+        cv2.line(canvas, centre, (centre[0] + 25, centre[1] - 9), 1, int(rng.integers(1, 3)))
+    rows, cols = np.nonzero(canvas)
+    resolution = float(rng.choice([0.05, 0.025]))
+    # Radii off the exact pixel distances, where scikit-learn's answer is rounding noise.
+    eps_m = float(rng.choice([0.33, 0.27, 0.12, 0.07, 0.03])) * resolution / 0.05
+    min_samples = int(rng.choice([1, 3, 5, 9]))
+    grid = Grid(rng.uniform(-50, 50), rng.uniform(-50, 50), resolution, 180, 140)
+    xy = grid.to_world(np.stack([cols, rows], axis=1))
+    expected = DBSCAN(eps=eps_m, min_samples=min_samples).fit_predict(xy)
+    got = dbscan_pixels(
+        rows, cols, neighbours=neighbour_offsets(eps_m, resolution), min_samples=min_samples
+    )
+    assert expected.max() > 0 or min_samples > 1  # the case has clusters to compare
+    assert np.array_equal(got, expected)
+
+
+def test_a_border_pixel_joins_the_first_cluster_that_reaches_it() -> None:
+    # Two blocks of 4 core pixels 8 px apart, one pixel halfway: with eps = 4 px it has only 3
+    # neighbours (not core) but reaches both, and scikit-learn gives it to the first cluster.
+    cols = np.array([0, 1, 2, 3, 7, 11, 12, 13, 14], np.intp)
+    rows = np.zeros_like(cols)
+    labels = dbscan_pixels(rows, cols, neighbours=neighbour_offsets(0.2, 0.05), min_samples=4)
+    assert labels.tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1]
+
+
+def test_pixels_exactly_eps_apart_are_neighbours() -> None:
+    mask = np.zeros((20, 30), bool)
+    mask[5, 3] = mask[5, 9] = True  # 6 px = 0.30 m apart
+    grid = Grid(0.0, 0.0, 0.05, 30, 20)
+    found = cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=2)
+    assert len(found) == 1 and found[0].pixels == 2
+    assert cluster_mask(mask, grid, "added", eps_m=0.29, min_samples=2) == []
+
+
+def test_an_unknown_engine_is_an_error() -> None:
+    mask, grid = np.ones((3, 3), bool), Grid(0, 0, 0.05, 3, 3)
+    with pytest.raises(ValueError, match="unknown DBSCAN engine"):
+        cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=2, engine="x")  # type: ignore[arg-type]
 
 
 def test_warp_with_drift_moves_walls_by_the_shift() -> None:
