@@ -88,12 +88,24 @@ class GlobalView:
         self.__dict__["_nearest_box"] = field
         return field
 
-    def drop_search_fields(self) -> None:
-        """Forget the fields built for alignment and drift (nearest walls, near-wall masks,
-        distances, search levels): the later stages read only ``state`` and ``structure``.
-        Frees their memory (4 bytes a cell and more); they are built again if asked for."""
-        for key in ("_nearest_box", "_near", "_levels"):
-            self.__dict__.pop(key, None)
+    def cropped(self, box: tuple[int, int, int, int]) -> GlobalView:
+        """The view over ``box`` = (row0, row1, col0, col1) of it only: copies of ``state`` and
+        ``structure`` there, on the matching part of the grid, and no search fields. The later
+        stages need only where the local map landed; the search needed room to move it."""
+        r0, r1, c0, c1 = box
+        g = self.grid
+        part = Grid(
+            g.x0 + c0 * g.resolution,
+            g.y0 + (g.height - r1) * g.resolution,
+            g.resolution,
+            c1 - c0,
+            r1 - r0,
+        )
+        return GlobalView(
+            part,
+            np.ascontiguousarray(self.state[r0:r1, c0:c1]),
+            np.ascontiguousarray(self.structure[r0:r1, c0:c1]),
+        )
 
     def level(self, resolution: float, pad: int) -> _Level:
         """The wall likelihood at a coarser resolution (cached: the wide search reuses it)."""

@@ -24,6 +24,8 @@ from mapserver.grid import Grid, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
+# warp_local's node spacing: a grid cropped at multiples of it warps to the same cells.
+WARP_STEP_PX = 8
 
 
 @dataclass(frozen=True)
@@ -223,7 +225,7 @@ def warp_local(
     nav2_from_slam: Transform2D,
     drift: DriftField | DriftStack | None = None,
     *,
-    step_px: int = 8,
+    step_px: int = WARP_STEP_PX,
 ) -> NDArray[np.uint8]:
     """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
 
@@ -236,7 +238,10 @@ def warp_local(
         return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
     s = step_px
     out = np.full(grid.shape, UNKNOWN, np.uint8)
-    box = _landing_box(local, grid, nav2_from_slam, drift, step_px=s)
+    # Only a power-of-two step keeps the nodes' interpolation weights exact when the box moves
+    # the nodes' origin, so any other step gets the whole grid.
+    whole = (0, grid.height, 0, grid.width)
+    box = whole if s & (s - 1) else landing_box(local, grid, nav2_from_slam, drift, step_px=s)
     if box is None:
         return out
     r0, r1, c0, c1 = box
@@ -265,23 +270,21 @@ def warp_local(
     return out
 
 
-def _landing_box(
+def landing_box(
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
-    drift: DriftField | DriftStack,
+    drift: DriftField | DriftStack | None = None,
     *,
-    step_px: int,
+    margin_px: float = 2.0,
+    step_px: int = 1,
 ) -> tuple[int, int, int, int] | None:
     """``(row0, row1, col0, col1)`` of the grid cells that the local map's known cells can land
-    on (with the drift, and a margin), starting on multiples of ``step_px``; None if none.
+    on, with the drift and ``margin_px`` around them, starting on multiples of ``step_px``
+    (clipped to the grid); None if none.
 
-    Every other cell of the warp samples an unknown cell or the outside: it stays unknown.
-    Only a power-of-two step keeps the nodes' interpolation weights exact when the box moves
-    the nodes' origin, so any other step gets the whole grid.
+    Every other cell of a warp samples an unknown cell or the outside: it stays unknown.
     """
-    if step_px & (step_px - 1):
-        return 0, grid.height, 0, grid.width
     x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
     if w == 0:
         return None
@@ -289,7 +292,8 @@ def _landing_box(
     rows = np.array([y - 1.0, y - 1.0, y + h, y + h])
     sx, sy = local.pixel_to_world(cols, rows)
     corners = grid.to_pixel(nav2_from_slam.apply(np.stack([sx, sy], axis=1)))
-    margin = drift.max_shift_m() / grid.resolution + 2.0
+    shift_m = drift.max_shift_m() if drift is not None else 0.0
+    margin = shift_m / grid.resolution + margin_px
     c0, r0 = np.floor(corners.min(axis=0) - margin).astype(int)
     c1, r1 = np.ceil(corners.max(axis=0) + margin).astype(int) + 1
     c0, r0 = max(c0 - c0 % step_px, 0), max(r0 - r0 % step_px, 0)

@@ -165,6 +165,7 @@ def misfit_tolerance(
     tile_m: float,
     quantile: float = 0.8,
     min_walls: int = 30,
+    tile_offset_px: tuple[int, int] = (0, 0),
 ) -> NDArray[np.float32]:
     """Per-cell extra tolerance: how far local walls sit from global walls nearby.
 
@@ -172,7 +173,9 @@ def misfit_tolerance(
     the tolerance stays ``base_m`` (extra 0); where they still sit off (drift that could not be
     taken out, a wall seen doubled on a revisit), it grows to the ``quantile`` of the local
     walls' distance to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``.
-    Measured over the walls in each tile of ``tile_m`` and its eight neighbours. Returns the
+    Measured over the walls in each tile of ``tile_m`` and its eight neighbours; tile edges lie
+    where ``row + tile_offset_px[0]`` (and ``col + tile_offset_px[1]``) is a multiple of the tile
+    size, so a lattice fixed in the map frame gives the same tiles on any crop. Returns the
     growth over ``base_m``: (H, W) float32 metres, 0 where the fit is good.
     """
     tol = np.zeros(local_state.shape, np.float32)
@@ -193,31 +196,39 @@ def misfit_tolerance(
     dist_m_at = dist_m[rows - r0, cols - c0]
     if len(rows) < min_walls:
         return tol
-    values = dist_m_at
     tile = max(1, round(tile_m / resolution))
-    ti, tj = rows // tile, cols // tile
-    n_i, n_j = local_state.shape[0] // tile + 1, local_state.shape[1] // tile + 1
-    order = np.lexsort((values, tj, ti))
-    ti, tj, values = ti[order], tj[order], values[order]
-    key = ti * n_j + tj
+    # Tiles on the lattice given by tile_offset_px, and a ring of empty ones around the walls'
+    # (they borrow from their neighbours).
+    ti = (rows + tile_offset_px[0]) // tile
+    tj = (cols + tile_offset_px[1]) // tile
+    i_lo, j_lo = int(ti.min()) - 1, int(tj.min()) - 1
+    ti, tj = ti - i_lo, tj - j_lo
+    n_i, n_j = int(ti.max()) + 2, int(tj.max()) + 2
+    order = np.lexsort((dist_m_at, tj, ti))
+    key, values = (ti * n_j + tj)[order], dist_m_at[order]
     starts = np.searchsorted(key, np.arange(n_i * n_j))
     ends = np.searchsorted(key, np.arange(n_i * n_j), side="right")
-    for i in range(n_i):
-        for j in range(n_j):
-            parts = [
-                values[starts[k] : ends[k]]
-                for k in (
-                    (i + di) * n_j + (j + dj)
-                    for di in (-1, 0, 1)
-                    for dj in (-1, 0, 1)
-                    if 0 <= i + di < n_i and 0 <= j + dj < n_j
-                )
-            ]
-            near = np.concatenate(parts) if parts else values[:0]
-            if len(near) >= min_walls:
-                q = float(np.quantile(near, quantile)) + base_m / 2
-                grown = min(max(q, base_m), max_m) - base_m
-                tol[i * tile : (i + 1) * tile, j * tile : (j + 1) * tile] = grown
+    # Walls in each tile's 3 x 3 neighbourhood: only tiles with enough of them get a quantile.
+    counts = np.pad((ends - starts).reshape(n_i, n_j), 1)
+    around = np.zeros((n_i, n_j), np.int64)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            around += counts[1 + di : 1 + di + n_i, 1 + dj : 1 + dj + n_j]
+    for i, j in zip(*np.nonzero(around >= min_walls), strict=True):
+        parts = [
+            values[starts[k] : ends[k]]
+            for k in (
+                (i + di) * n_j + (j + dj)
+                for di in (-1, 0, 1)
+                for dj in (-1, 0, 1)
+                if 0 <= i + di < n_i and 0 <= j + dj < n_j
+            )
+        ]
+        q = float(np.quantile(np.concatenate(parts), quantile)) + base_m / 2
+        grown = min(max(q, base_m), max_m) - base_m
+        r = (i + i_lo) * tile - tile_offset_px[0]
+        c = (j + j_lo) * tile - tile_offset_px[1]
+        tol[max(r, 0) : max(r + tile, 0), max(c, 0) : max(c + tile, 0)] = grown
     return tol
 
 

@@ -39,6 +39,10 @@ from mapserver.maps import OCCUPIED, OccupancyMap, load_map
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
+# How far past the cells the local map lands on the differences look (wall tolerances, the
+# misfit's reach, the removal evidence), metres.
+_ANALYSIS_MARGIN_M = 1.0
+
 # Decoded global maps, kept across bundles in this process (a daemon worker serves many bundles
 # of the same building). Two maps: the one in use and the one before it.
 GLOBAL_MAPS = MapCache(capacity=2)
@@ -247,7 +251,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
     transform = alignment.nav2_from_slam
     grid = view.grid
 
-    def _warp() -> tuple[np.ndarray, deform.DriftStack | None]:
+    def _warp() -> tuple[align_stage.GlobalView, np.ndarray, deform.DriftStack | None]:
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
@@ -275,10 +279,22 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
                     )
                 )
             drift = deform.DriftStack(tuple(fields))
-        return deform.warp_local(local, grid, transform, drift), drift
+        # From here on, only where the local map lands matters (with room for the tolerances and
+        # the images' margin): the search view around it is several times larger.
+        margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
+        box = deform.landing_box(
+            local,
+            view.grid,
+            transform,
+            drift,
+            margin_px=margin_m / view.grid.resolution,
+            step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
+        )
+        work = view.cropped(box) if box is not None else view
+        return work, deform.warp_local(local, work.grid, transform, drift), drift
 
-    local_state, drift = stages.run("warp", _warp)
-    view.drop_search_fields()
+    view, local_state, drift = stages.run("warp", _warp)
+    grid = view.grid
     if drift is not None and drift.max_shift_m() > 0.1:
         log.info("%s: drift corrected, up to %.2f m", bundle_id, drift.max_shift_m())
     region = stages.run(
@@ -299,6 +315,12 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
                 base_m=d.tolerance_m,
                 max_m=d.max_misfit_tolerance_m,
                 tile_m=d.misfit_tile_m,
+                # Tiles fixed in the nav2 frame (edges at multiples of the tile from its
+                # origin), whatever part of the map the work grid covers.
+                tile_offset_px=(
+                    -round((grid.y0 + grid.height * grid.resolution) / grid.resolution),
+                    round(grid.x0 / grid.resolution),
+                ),
             )
         raw = diff_stage.raw_differences(
             view.state,

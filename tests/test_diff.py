@@ -18,7 +18,7 @@ from mapserver.cluster import (
     sort_by_area,
 )
 from mapserver.deform import warp_local
-from mapserver.diff import DiffMasks, drop_small, filter_noise, raw_differences
+from mapserver.diff import DiffMasks, drop_small, filter_noise, misfit_tolerance, raw_differences
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
@@ -275,3 +275,24 @@ def test_drift_stack_adds_fields_and_reports_the_largest_combined_shift() -> Non
     got = stack.at(np.array([[10.0, 10.0], [0.0, 0.0]]))
     assert got == pytest.approx(np.array([[0.4, 0.0], [0.3, 0.0]]))
     assert stack.max_shift_m() == pytest.approx(0.4)
+
+
+def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() -> None:
+    rng = np.random.default_rng(3)
+    global_walls = np.zeros((300, 360), bool)
+    local = np.full((300, 360), UNKNOWN, np.uint8)
+    local[10:290, 10:350] = FREE
+    for _ in range(30):
+        (x0, y0), (x1, y1) = rng.integers(0, 300, (2, 2))
+        cv2.line(global_walls.view(np.uint8), (int(x0), int(y0)), (int(x1), int(y1)), 1, 1)
+        dx, dy = rng.integers(-6, 7, 2)  # the local wall sits up to 0.3 m off
+        cv2.line(local, (int(x0 + dx), int(y0 + dy)), (int(x1 + dx), int(y1 + dy)), OCCUPIED, 1)
+    kw = {"resolution": 0.05, "base_m": 0.15, "max_m": 0.5, "tile_m": 1.5}
+    whole = misfit_tolerance(local, global_walls, **kw, tile_offset_px=(7, 11))
+    assert (whole > 0).any() and (whole == 0).any()
+    r0, c0 = 37, 52  # a crop at no multiple of the 30-pixel tile
+    part = misfit_tolerance(
+        local[r0:, c0:], global_walls[r0:, c0:], **kw, tile_offset_px=(7 + r0, 11 + c0)
+    )
+    # Away from the crop's edge (where walls outside it no longer count) the tiles agree.
+    assert np.array_equal(part[60:, 60:], whole[r0 + 60 :, c0 + 60 :])

@@ -375,3 +375,34 @@ def test_nearest_wall_on_a_box_is_the_full_field_inside_it(seed: int) -> None:
     sure = inside & (d_wall < d_edge)
     assert np.array_equal(got[sure], want[sure])
     assert (got[~inside] >= 1e9).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_drift_warp_on_a_crop_at_the_warp_step_is_the_whole_grid_ones_part(seed: int) -> None:
+    # The pipeline warps onto the part of the view the local map lands on: cut at multiples of
+    # the warp's node step, it must give the cells the whole view's warp gives there.
+    rng = np.random.default_rng(seed)
+    local = from_states(_states(rng, (120, 150)), 0.05, (rng.uniform(-3, 3), -2.0, 0.0))
+    global_state = _states(rng, (467, 501))
+    view = GlobalView(Grid(-12.3, -11.1, 0.05, 501, 467), global_state, global_state == OCCUPIED)
+    transform = Transform2D(rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-2, 2))
+    drift = deform.DriftField(-4.0, -4.0, 3.0, rng.normal(0, 0.3, (5, 6, 2)).astype(np.float32))
+    box = deform.landing_box(
+        local, view.grid, transform, drift, margin_px=20, step_px=deform.WARP_STEP_PX
+    )
+    assert box is not None
+    r0, r1, c0, c1 = box
+    assert r0 % deform.WARP_STEP_PX == 0 and c0 % deform.WARP_STEP_PX == 0
+    part = view.cropped(box)
+    assert np.array_equal(part.state, global_state[r0:r1, c0:c1])
+    # The same cell is at the same place in the nav2 frame.
+    assert part.grid.to_world([[0, 0]]) == pytest.approx(view.grid.to_world([[c0, r0]]))
+    whole = deform.warp_local(local, view.grid, transform, drift)
+    assert np.array_equal(
+        deform.warp_local(local, part.grid, transform, drift),
+        whole[box[0] : box[1], box[2] : box[3]],
+    )
+    # Nothing lands outside the box.
+    outside = whole.copy()
+    outside[r0:r1, c0:c1] = UNKNOWN
+    assert (outside == UNKNOWN).all()
