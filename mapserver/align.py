@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from mapserver.diff import near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
-from mapserver.grid import Grid, resample
+from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -93,16 +93,8 @@ class GlobalView:
         ``structure`` there, on the matching part of the grid, and no search fields. The later
         stages need only where the local map landed; the search needed room to move it."""
         r0, r1, c0, c1 = box
-        g = self.grid
-        part = Grid(
-            g.x0 + c0 * g.resolution,
-            g.y0 + (g.height - r1) * g.resolution,
-            g.resolution,
-            c1 - c0,
-            r1 - r0,
-        )
         return GlobalView(
-            part,
+            self.grid.crop(box),
             np.ascontiguousarray(self.state[r0:r1, c0:c1]),
             np.ascontiguousarray(self.structure[r0:r1, c0:c1]),
         )
@@ -316,15 +308,20 @@ def consistency(
     put many local walls on global walls, but it also runs global walls through space the robot
     saw empty.
     """
-    local_state = resample(local.state, Grid.of_map(local), view.grid, nav2_from_slam)
     res = view.grid.resolution
     reach = offset_distances(tolerance_m / res)
-    # Only the box around the local map's known cells (and the tolerance's reach) counts.
-    x, y, w, h = cv2.boundingRect((local_state != UNKNOWN).view(np.uint8))
     k = reach.shape[0] // 2
+    # Only the box around the local map's known cells (and the tolerance's reach) counts: warp
+    # onto the cells they can land on, then keep the box around where they did.
+    landing = landing_box(local, view.grid, nav2_from_slam, margin_px=k + 2)
+    if landing is None:
+        return 0.0
+    local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
+    structure = view.structure[landing[0] : landing[1], landing[2] : landing[3]]
+    x, y, w, h = cv2.boundingRect((local_state != UNKNOWN).view(np.uint8))
     box = (slice(max(y - k, 0), y + h + k), slice(max(x - k, 0), x + w + k))
     local_state = local_state[box]
-    walls = view.structure[box] & (local_state != UNKNOWN)
+    walls = structure[box] & (local_state != UNKNOWN)
     n = int(np.count_nonzero(walls))
     if n == 0:
         return 0.0
@@ -493,16 +490,16 @@ class NearestWall:
     def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
         rows, cols = index
         r0, c0 = self._origin
-        if (r0, c0) == (0, 0) and self._labels.shape == self.shape[:2]:
-            return np.asarray(self._table[self._labels[rows, cols]])
-        r, c = rows - r0, cols - c0
         h, w = self._labels.shape
-        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        label = np.zeros(len(r), np.int64)
-        label[inside] = self._labels[r[inside], c[inside]]
-        out = np.asarray(self._table[label])
-        out[~inside] = 1e9
-        return out
+        r, c = rows - r0, cols - c0
+        # Clipped flat lookups (take), then the cells outside the box set apart: about twice
+        # as fast as masking first, and ICP and the drift estimate call this every iteration.
+        rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+        out = self._table.take(self._labels.ravel().take(rc * w + cc), axis=0)
+        outside = (rc != r) | (cc != c)
+        if outside.any():
+            out[outside] = 1e9
+        return np.asarray(out)
 
     def covers(self, box: tuple[int, int, int, int]) -> bool:
         r0, c0 = self._origin

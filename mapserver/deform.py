@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from mapserver.align import NearestWall, nearest_wall_m
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid, resample
+from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -241,7 +241,12 @@ def warp_local(
     # Only a power-of-two step keeps the nodes' interpolation weights exact when the box moves
     # the nodes' origin, so any other step gets the whole grid.
     whole = (0, grid.height, 0, grid.width)
-    box = whole if s & (s - 1) else landing_box(local, grid, nav2_from_slam, drift, step_px=s)
+    margin_px = drift.max_shift_m() / grid.resolution + 2.0
+    box = (
+        whole
+        if s & (s - 1)
+        else landing_box(local, grid, nav2_from_slam, margin_px=margin_px, step_px=s)
+    )
     if box is None:
         return out
     r0, r1, c0, c1 = box
@@ -268,36 +273,3 @@ def warp_local(
         borderValue=UNKNOWN,
     )
     return out
-
-
-def landing_box(
-    local: OccupancyMap,
-    grid: Grid,
-    nav2_from_slam: Transform2D,
-    drift: DriftField | DriftStack | None = None,
-    *,
-    margin_px: float = 2.0,
-    step_px: int = 1,
-) -> tuple[int, int, int, int] | None:
-    """``(row0, row1, col0, col1)`` of the grid cells that the local map's known cells can land
-    on, with the drift and ``margin_px`` around them, starting on multiples of ``step_px``
-    (clipped to the grid); None if none.
-
-    Every other cell of a warp samples an unknown cell or the outside: it stays unknown.
-    """
-    x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
-    if w == 0:
-        return None
-    cols = np.array([x - 1.0, x + w, x - 1.0, x + w])
-    rows = np.array([y - 1.0, y - 1.0, y + h, y + h])
-    sx, sy = local.pixel_to_world(cols, rows)
-    corners = grid.to_pixel(nav2_from_slam.apply(np.stack([sx, sy], axis=1)))
-    shift_m = drift.max_shift_m() if drift is not None else 0.0
-    margin = shift_m / grid.resolution + margin_px
-    c0, r0 = np.floor(corners.min(axis=0) - margin).astype(int)
-    c1, r1 = np.ceil(corners.max(axis=0) + margin).astype(int) + 1
-    c0, r0 = max(c0 - c0 % step_px, 0), max(r0 - r0 % step_px, 0)
-    c1, r1 = min(c1, grid.width), min(r1, grid.height)
-    if c1 <= c0 or r1 <= r0:
-        return None
-    return int(r0), int(r1), int(c0), int(c1)

@@ -89,6 +89,13 @@ class Grid:
             resolution,
         )
 
+    def crop(self, box: tuple[int, int, int, int]) -> Grid:
+        """The grid of the cells ``box`` = (row0, row1, col0, col1) of this one: the same
+        cells in the same places, indexed from the box's corner."""
+        r0, r1, c0, c1 = box
+        r = self.resolution
+        return Grid(self.x0 + c0 * r, self.y0 + (self.height - r1) * r, r, c1 - c0, r1 - r0)
+
     def extent(self) -> tuple[float, float, float, float]:
         r = self.resolution
         return (self.x0, self.y0, self.x0 + self.width * r, self.y0 + self.height * r)
@@ -125,3 +132,33 @@ def resample(
         borderValue=fill,
     )
     return np.asarray(out, dtype=np.uint8)
+
+
+def landing_box(
+    local: OccupancyMap,
+    grid: Grid,
+    dst_from_src: Transform2D,
+    *,
+    margin_px: float = 2.0,
+    step_px: int = 1,
+) -> tuple[int, int, int, int] | None:
+    """``(row0, row1, col0, col1)`` of the cells of ``grid`` that the known cells of ``local``
+    land on through ``dst_from_src``, with ``margin_px`` around them, starting on multiples of
+    ``step_px`` (clipped to the grid); None if none.
+
+    Every other cell of a warp samples an unknown cell or the outside: it stays unknown.
+    """
+    x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
+    if w == 0:
+        return None
+    cols = np.array([x - 1.0, x + w, x - 1.0, x + w])
+    rows = np.array([y - 1.0, y - 1.0, y + h, y + h])
+    sx, sy = local.pixel_to_world(cols, rows)
+    corners = grid.to_pixel(dst_from_src.apply(np.stack([sx, sy], axis=1)))
+    c0, r0 = np.floor(corners.min(axis=0) - margin_px).astype(int)
+    c1, r1 = np.ceil(corners.max(axis=0) + margin_px).astype(int) + 1
+    c0, r0 = max(c0 - c0 % step_px, 0), max(r0 - r0 % step_px, 0)
+    c1, r1 = min(c1, grid.width), min(r1, grid.height)
+    if c1 <= c0 or r1 <= r0:
+        return None
+    return int(r0), int(r1), int(c0), int(c1)

@@ -32,7 +32,7 @@ from mapserver.errors import (
     ProcessingError,
 )
 from mapserver.geometry import Pose2D, Transform2D
-from mapserver.grid import Grid
+from mapserver.grid import Grid, landing_box
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, OccupancyMap, load_map
 
@@ -282,12 +282,12 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         # From here on, only where the local map lands matters (with room for the tolerances and
         # the images' margin): the search view around it is several times larger.
         margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
-        box = deform.landing_box(
+        drift_m = drift.max_shift_m() if drift is not None else 0.0
+        box = landing_box(
             local,
             view.grid,
             transform,
-            drift,
-            margin_px=margin_m / view.grid.resolution,
+            margin_px=(drift_m + margin_m) / view.grid.resolution,
             step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
         )
         work = view.cropped(box) if box is not None else view

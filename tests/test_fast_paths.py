@@ -19,7 +19,7 @@ from mapserver.align import (
 )
 from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid, resample
+from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.roi import _outline
 
@@ -387,9 +387,8 @@ def test_the_drift_warp_on_a_crop_at_the_warp_step_is_the_whole_grid_ones_part(s
     view = GlobalView(Grid(-12.3, -11.1, 0.05, 501, 467), global_state, global_state == OCCUPIED)
     transform = Transform2D(rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-2, 2))
     drift = deform.DriftField(-4.0, -4.0, 3.0, rng.normal(0, 0.3, (5, 6, 2)).astype(np.float32))
-    box = deform.landing_box(
-        local, view.grid, transform, drift, margin_px=20, step_px=deform.WARP_STEP_PX
-    )
+    margin_px = drift.max_shift_m() / 0.05 + 2
+    box = landing_box(local, view.grid, transform, margin_px=margin_px, step_px=deform.WARP_STEP_PX)
     assert box is not None
     r0, r1, c0, c1 = box
     assert r0 % deform.WARP_STEP_PX == 0 and c0 % deform.WARP_STEP_PX == 0
