@@ -99,12 +99,13 @@ class GlobalView:
             np.ascontiguousarray(self.structure[r0:r1, c0:c1]),
         )
 
-    def level(self, resolution: float, pad: int) -> _Level:
-        """The wall likelihood at a coarser resolution (cached: the wide search reuses it)."""
-        key = (round(resolution, 9), pad)
-        cache: dict[tuple[float, int], _Level] = self.__dict__.setdefault("_levels", {})
+    def level(self, factor: int, pad: int) -> _Level:
+        """The wall likelihood on cells ``factor`` times the grid's (cached: the wide search
+        reuses it)."""
+        key = (factor, pad)
+        cache: dict[tuple[int, int], _Level] = self.__dict__.setdefault("_levels", {})
         if key not in cache:
-            cache[key] = _make_level(self, resolution, pad)
+            cache[key] = _make_level(self, factor, pad)
         return cache[key]
 
 
@@ -345,19 +346,24 @@ class _Level:
     pad: int
 
 
-def _make_level(view: GlobalView, resolution: float, pad: int) -> _Level:
-    grid = view.grid.rescaled(resolution)
-    if grid.resolution > view.grid.resolution * 1.01:
-        # Max-pool the walls so that thin ones survive the downsampling.
-        area = cv2.resize(
-            view.structure.astype(np.float32),
-            (grid.width, grid.height),
-            interpolation=cv2.INTER_AREA,
-        )
-        structure = area > 0.0
+def _make_level(view: GlobalView, factor: int, pad: int) -> _Level:
+    g = view.grid
+    if factor > 1:
+        # Max-pool the walls over factor x factor blocks (from the top-left corner) so that thin
+        # ones survive the downsampling: a dilation read at every factor-th cell.
+        pooled = cv2.dilate(
+            view.structure.view(np.uint8),
+            np.ones((factor, factor), np.uint8),
+            anchor=(0, 0),
+            borderType=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )[::factor, ::factor]
+        h, w = pooled.shape
+        top = g.y0 + g.height * g.resolution
+        grid = Grid(g.x0, top - h * factor * g.resolution, factor * g.resolution, w, h)
+        structure = pooled > 0
     else:
-        structure = view.structure
-        grid = view.grid
+        structure, grid = view.structure, g
     d = _distance_field(structure)
     field = np.exp(-0.5 * (d / 1.0) ** 2).astype(np.float32)
     field = cv2.copyMakeBorder(field, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
@@ -606,12 +612,14 @@ def _search(
     centre = centroid if pivot is None else np.asarray(pivot, dtype=float)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
     target0 = prior.apply(centre)
-    res0 = float(np.clip(size / 30.0, view.grid.resolution, 0.5))
-    levels_res = [res0]
-    while len(levels_res) <= fine_levels and levels_res[-1] / 2.0 >= view.grid.resolution * 1.5:
-        levels_res.append(levels_res[-1] / 2.0)
+    # Level cells are whole numbers of work cells (pooling is then exact, and cheap).
+    vres = view.grid.resolution
+    factors = [int(np.clip(round(size / 30.0 / vres), 1, max(1, math.floor(0.5 / vres + 1e-9))))]
+    while len(factors) <= fine_levels and factors[-1] / 2.0 >= 1.5:
+        factors.append(round(factors[-1] / 2.0))
+    res0 = factors[0] * vres
     shift0 = math.ceil(search_xy_m / res0) + 1
-    levels = [view.level(r, shift0 + 4) for r in levels_res]
+    levels = [view.level(f, shift0 + 4) for f in factors]
 
     step0 = res0 / radius
     n = max(1, math.ceil(theta_half_rad / step0))
