@@ -13,6 +13,7 @@ from mapserver.align import (
     GlobalView,
     NearestWall,
     _distance_field,
+    _make_level,
     consistency,
     structure_mask,
     thin_points,
@@ -405,3 +406,24 @@ def test_the_drift_warp_on_a_crop_at_the_warp_step_is_the_whole_grid_ones_part(s
     outside = whole.copy()
     outside[r0:r1, c0:c1] = UNKNOWN
     assert (outside == UNKNOWN).all()
+
+
+@pytest.mark.parametrize("factor", [2, 5, 10])
+def test_a_search_level_max_pools_the_walls_onto_cells_in_the_same_place(factor: int) -> None:
+    structure = _walls(factor, (203, 157), 0.002)  # sizes that are no multiple of the factor
+    view = GlobalView(Grid(-3.7, 8.2, 0.05, 157, 203), np.zeros((203, 157), np.uint8), structure)
+    level = _make_level(view, factor, pad=3)
+    assert level.grid.resolution == pytest.approx(0.05 * factor)
+    pooled = level.field[3:-3, 3:-3] == 1.0  # a wall cell has likelihood 1
+    # The plain max-pool: blocks of factor x factor cells from the top-left corner.
+    h, w = -(-203 // factor) * factor, -(-157 // factor) * factor
+    padded = np.zeros((h, w), bool)
+    padded[:203, :157] = structure
+    assert np.array_equal(
+        pooled, padded.reshape(h // factor, factor, w // factor, factor).any((1, 3))
+    )
+    # Every wall lies inside the level cell that holds it.
+    rows, cols = np.nonzero(structure)
+    xy = view.grid.to_world(np.stack([cols, rows], 1))
+    cell = np.floor(level.grid.to_pixel(xy) + 0.5).astype(int)
+    assert np.array_equal(cell[:, 0], cols // factor) and np.array_equal(cell[:, 1], rows // factor)
