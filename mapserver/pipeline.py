@@ -262,14 +262,19 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             nearest = view.nearest_wall_near(
                 transform.apply(walls), reach_m=2 * a.deform_max_shift_m + 0.5
             )
+            spacing = 2 * grid.resolution
             # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
             fields: list[deform.DriftField] = []
             for tile_m, max_shift_m in _drift_passes(
                 a.deform_tile_m, a.deform_max_shift_m, a.deform_passes
             ):
+                # A coarser pass averages over more wall: points as much sparser as its tiles
+                # are larger do as well (the same number per tile), at a fraction of the cost.
+                k = round(tile_m / a.deform_tile_m)
+                pts = walls if k <= 1 else align_stage.thin_points(walls, spacing * k)
                 fields.append(
                     deform.estimate_drift(
-                        walls,
+                        pts,
                         transform,
                         grid,
                         nearest,
