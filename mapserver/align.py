@@ -554,24 +554,32 @@ def icp(
     transform = start
     h, w = nearest_colrow.shape[:2]
     lookup = nearest_wall_m(nearest_colrow, grid)
+    # Coordinates as separate contiguous columns: every step below is a 1-D operation.
+    sx, sy = np.ascontiguousarray(points_slam[:, 0]), np.ascontiguousarray(points_slam[:, 1])
+    res = grid.resolution
     for k in range(iterations):
         limit = max_distance_m * (1.0 - 0.66 * k / max(iterations - 1, 1))
-        q = transform.apply(points_slam)
-        px = np.rint(grid.to_pixel(q)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        target = np.zeros_like(q)
-        target[inside] = lookup(px[inside, 1], px[inside, 0])
-        d = np.sqrt(((q - target) ** 2).sum(axis=1))
-        use = inside & (d <= limit)
-        if use.sum() < 10:
+        c, s = math.cos(transform.theta), math.sin(transform.theta)
+        qx = c * sx - s * sy + transform.tx
+        qy = s * sx + c * sy + transform.ty
+        # grid.to_pixel, rounded; cells outside the grid are looked up clipped and never used.
+        col = np.rint((qx - grid.x0) / res - 0.5).astype(np.int64)
+        row = np.rint(grid.height - (qy - grid.y0) / res - 0.5).astype(np.int64)
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        target = lookup(np.clip(row, 0, h - 1), np.clip(col, 0, w - 1))
+        ex, ey = target[:, 0] - qx, target[:, 1] - qy
+        use = inside & (ex * ex + ey * ey <= limit * limit)
+        n = int(np.count_nonzero(use))
+        if n < 10:
             break
-        src, dst = points_slam[use], target[use]
-        ms, md = src.mean(axis=0), dst.mean(axis=0)
-        cov = (src - ms).T @ (dst - md)
-        theta = math.atan2(cov[0, 1] - cov[1, 0], cov[0, 0] + cov[1, 1])
+        ux, uy = sx[use], sy[use]
+        vx, vy = target[use, 0], target[use, 1]
+        msx, msy, mdx, mdy = ux.mean(), uy.mean(), vx.mean(), vy.mean()
+        ux, uy, vx, vy = ux - msx, uy - msy, vx - mdx, vy - mdy
+        # The closed-form rigid fit: the rotation from the cross-covariance of the pairs.
+        theta = math.atan2(float(ux @ vy - uy @ vx), float(ux @ vx + uy @ vy))
         c, s = math.cos(theta), math.sin(theta)
-        t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
-        new = Transform2D(theta, float(t[0]), float(t[1]))
+        new = Transform2D(theta, float(mdx - (c * msx - s * msy)), float(mdy - (s * msx + c * msy)))
         step = math.hypot(new.tx - transform.tx, new.ty - transform.ty)
         transform = new
         if step < 1e-4 and k > 5:
