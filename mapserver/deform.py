@@ -151,7 +151,7 @@ def estimate_drift(
     n_nodes = rows * cols
     active = np.bincount(node, minlength=n_nodes) >= min_points
     nearest_xy = nearest_wall_m(nearest_colrow, grid)
-    shift = np.zeros((n_nodes, 2))
+    shift_x, shift_y = np.zeros(n_nodes), np.zeros(n_nodes)
     used = np.zeros(n_nodes, np.int64)
     bx, by = base[:, 0].copy(), base[:, 1].copy()
     for k in range(iterations):
@@ -160,8 +160,8 @@ def estimate_drift(
         if len(node) == 0:
             break
         limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
-        qx = bx[point] + shift[node, 0]
-        qy = by[point] + shift[node, 1]
+        qx = bx[point] + shift_x[node]
+        qy = by[point] + shift_y[node]
         # grid.to_pixel, by coordinate; cells outside the grid are looked up clipped and never
         # used.
         pc = np.rint((qx - grid.x0) / grid.resolution - 0.5).astype(np.int64)
@@ -169,19 +169,21 @@ def estimate_drift(
         inside = (pc >= 0) & (pc < w) & (pr >= 0) & (pr < h)
         target = nearest_xy(np.clip(pr, 0, h - 1), np.clip(pc, 0, w - 1))
         rx, ry = target[:, 0] - qx, target[:, 1] - qy
-        use = inside & (np.sqrt(rx**2 + ry**2) <= limit)
+        use = inside & (rx * rx + ry * ry <= limit * limit)
         node_used = node[use]
         counted = np.bincount(node_used, minlength=n_nodes)
         used[active] = counted[active]
         active &= counted >= min_points // 2
-        sums = np.stack(
-            [np.bincount(node_used, weights=v[use], minlength=n_nodes) for v in (rx, ry)], 1
-        )
-        step = shift[active] + sums[active] / counted[active][:, None]
-        norm = np.hypot(step[:, 0], step[:, 1])
-        over = norm > max_shift_m
-        step[over] *= (max_shift_m / norm[over])[:, None]
-        shift[active] = step
+        sum_x = np.bincount(node_used, weights=rx[use], minlength=n_nodes)
+        sum_y = np.bincount(node_used, weights=ry[use], minlength=n_nodes)
+        n_act = counted[active]
+        step_x = shift_x[active] + sum_x[active] / n_act
+        step_y = shift_y[active] + sum_y[active] / n_act
+        norm = np.hypot(step_x, step_y)
+        scale = np.where(norm > max_shift_m, max_shift_m / np.maximum(norm, 1e-12), 1.0)
+        shift_x[active] = step_x * scale
+        shift_y[active] = step_y * scale
+    shift = np.stack([shift_x, shift_y], axis=1)
     valid = (used >= min_points // 2).reshape(rows, cols)
     shifts = np.where(valid[:, :, None], shift.reshape(rows, cols, 2), 0.0).astype(np.float32)
     if not valid.any():
