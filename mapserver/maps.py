@@ -54,8 +54,6 @@ _ASCII_MAX_DIGITS = 18
 # Elements per step when a lookup goes through numpy indexing, which makes an intp copy of its
 # indices: chunks keep that copy at 8 MB instead of 8 bytes per pixel.
 _CHUNK = 1 << 20
-# cv2.calcHist counts in float32, exact up to 2**24 per call.
-_HIST_CHUNK = 1 << 24
 # A grey level that map_saver's unknown 205 outnumbers by this much, against its neighbours 204
 # and 206 together, is a plateau (a saved unknown area), not one step of a grey ramp.
 _PLATEAU_RATIO = 4
@@ -278,12 +276,12 @@ def load_map(
 
     warnings: list[str] = []
     state_lut, occupancy_lut = _lookup_tables(meta)
-    counts = _histogram(decoded.grey)
-    if _unknown_plateau_reads_free(meta, state_lut, counts):
+    plateau = _unknown_plateau_read_as_free(meta, state_lut, decoded.grey)
+    if plateau:
         state_lut[PGM_UNKNOWN] = UNKNOWN
         warnings.append(
             f"free_thresh {meta.free_thresh} in {yaml_path} reads map_saver's unknown grey 205 as "
-            f"free ({int(counts[PGM_UNKNOWN])} cells; older Humble map_saver wrote 0.25, the "
+            f"free ({plateau} cells; older Humble map_saver wrote 0.25, the "
             f"right value is 0.196): those cells are read as unknown"
         )
     state = cast("NDArray[np.uint8]", cv2.LUT(decoded.grey, state_lut))
@@ -818,28 +816,31 @@ def _lookup_tables(meta: _MapYaml) -> tuple[NDArray[np.uint8], NDArray[np.uint8]
     return state, occupancy.astype(np.uint8)
 
 
-def _histogram(grey: NDArray[np.uint8]) -> NDArray[np.int64]:
-    """(256,) int64 count of each grey level, exact, without a per-pixel temporary."""
+def _grey_counts(grey: NDArray[np.uint8], levels: tuple[int, ...]) -> list[int]:
+    """How many pixels of ``grey`` have each of ``levels`` (no per-pixel temporary beyond one
+    chunk's comparison)."""
     flat = grey.reshape(-1)
-    counts = np.zeros(256, np.int64)
-    for start in range(0, flat.size, _HIST_CHUNK):
-        chunk = flat[start : start + _HIST_CHUNK].reshape(1, -1)
-        counts += cv2.calcHist([chunk], [0], None, [256], [0, 256]).reshape(-1).astype(np.int64)
+    counts = [0] * len(levels)
+    for start in range(0, flat.size, _CHUNK * 16):
+        chunk = flat[start : start + _CHUNK * 16]
+        for i, level in enumerate(levels):
+            counts[i] += int(np.count_nonzero(chunk == level))
     return counts
 
 
-def _unknown_plateau_reads_free(
-    meta: _MapYaml, state_lut: NDArray[np.uint8], counts: NDArray[np.int64]
-) -> bool:
-    """Whether the thresholds read map_saver's unknown grey 205 as free in a map that has it.
+def _unknown_plateau_read_as_free(
+    meta: _MapYaml, state_lut: NDArray[np.uint8], grey: NDArray[np.uint8]
+) -> int:
+    """The number of map_saver's unknown grey 205 pixels when the thresholds read them as free
+    in a map that has them; 0 otherwise.
 
     Not tied to the value 0.25: any threshold that reads 205 as free is the same mistake. 205
     must be a plateau, more common than its neighbours 204 and 206 together by ``_PLATEAU_RATIO``,
     because in a map of smooth greys (a drawing, a scan) 205 is just one shade among many and
-    the thresholds mean what they say. map_saver only writes ``negate: 0``.
+    the thresholds mean what they say. map_saver only writes ``negate: 0``. The pixels are
+    counted only when the thresholds read 205 as free (most maps: never).
     """
     if meta.mode == "raw" or meta.negate or state_lut[PGM_UNKNOWN] != FREE:
-        return False
-    plateau = int(counts[PGM_UNKNOWN])
-    neighbours = int(counts[PGM_UNKNOWN - 1] + counts[PGM_UNKNOWN + 1])
-    return plateau > 0 and plateau >= _PLATEAU_RATIO * neighbours
+        return 0
+    below, plateau, above = _grey_counts(grey, (PGM_UNKNOWN - 1, PGM_UNKNOWN, PGM_UNKNOWN + 1))
+    return plateau if plateau > 0 and plateau >= _PLATEAU_RATIO * (below + above) else 0
