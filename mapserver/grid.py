@@ -108,6 +108,17 @@ def warp_matrix(src: Grid, dst: Grid, dst_from_src: Transform2D) -> NDArray[np.f
     return m[:2]
 
 
+def _whole_pixel_shift(matrix: NDArray[np.float64]) -> tuple[int, int] | None:
+    """(d_col, d_row) when a 2x3 dst-to-src pixel matrix is a translation by whole pixels (a
+    source pixel centre lands exactly on each destination pixel centre); else None."""
+    if not np.allclose(matrix[:, :2], np.eye(2), rtol=0.0, atol=1e-9):
+        return None
+    shift = np.rint(matrix[:, 2])
+    if not np.allclose(matrix[:, 2], shift, rtol=0.0, atol=1e-6):
+        return None
+    return int(shift[0]), int(shift[1])
+
+
 def resample(
     image: NDArray[np.uint8],
     src: Grid,
@@ -123,6 +134,16 @@ def resample(
     """
     transform = dst_from_src or Transform2D.identity()
     matrix = warp_matrix(src, dst, transform)
+    shift = _whole_pixel_shift(matrix)
+    if shift is not None:
+        # The same lattice, moved by whole pixels: the warp is a copy of the overlap.
+        dc, dr = shift
+        out = np.full((dst.height, dst.width), fill, image.dtype)
+        r0, c0 = max(0, -dr), max(0, -dc)
+        r1, c1 = min(dst.height, src.height - dr), min(dst.width, src.width - dc)
+        if r1 > r0 and c1 > c0:
+            out[r0:r1, c0:c1] = image[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        return out
     out = cv2.warpAffine(
         image,
         matrix,

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mapserver import deform, roi
+from mapserver import grid as grid_module
 from mapserver.align import (
     GlobalView,
     NearestWall,
@@ -427,3 +428,36 @@ def test_a_search_level_max_pools_the_walls_onto_cells_in_the_same_place(factor:
     xy = view.grid.to_world(np.stack([cols, rows], 1))
     cell = np.floor(level.grid.to_pixel(xy) + 0.5).astype(int)
     assert np.array_equal(cell[:, 0], cols // factor) and np.array_equal(cell[:, 1], rows // factor)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_resampling_onto_the_same_lattice_is_the_warp(seed: int) -> None:
+    # A grid whose cells coincide with the source's (moved by whole cells, overlapping it
+    # partly, wholly or not at all) gets a copy of the overlap: what warpAffine gives.
+    rng = np.random.default_rng(seed)
+    image = rng.integers(0, 256, (53, 71)).astype(np.uint8)
+    src = Grid(-1.3, 2.1, 0.05, 71, 53)
+    dc, dr = (int(v) for v in rng.integers(-90, 90, 2))
+    w, h = (int(v) for v in rng.integers(1, 120, 2))
+    dst = Grid(src.x0 + dc * 0.05, src.y0 + dr * 0.05, 0.05, w, h)
+    matrix = grid_module.warp_matrix(src, dst, Transform2D.identity())
+    assert grid_module._whole_pixel_shift(matrix) is not None
+    expected = cv2.warpAffine(
+        image,
+        matrix,
+        (w, h),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=7,
+    )
+    assert np.array_equal(resample(image, src, dst, fill=7), expected)
+    # Off the lattice by a fraction of a cell, or turned: a real warp.
+    shifted = Grid(dst.x0 + 0.02, dst.y0, 0.05, w, h)
+    assert (
+        grid_module._whole_pixel_shift(
+            grid_module.warp_matrix(src, shifted, Transform2D.identity())
+        )
+        is None
+    )
+    turned = grid_module.warp_matrix(src, dst, Transform2D(0.01, 0.0, 0.0))
+    assert grid_module._whole_pixel_shift(turned) is None
