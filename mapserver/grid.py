@@ -138,12 +138,12 @@ def resample(
     if shift is not None:
         # The same lattice, moved by whole pixels: the warp is a copy of the overlap.
         dc, dr = shift
-        out = np.full((dst.height, dst.width), fill, image.dtype)
+        copied = np.full((dst.height, dst.width), fill, np.uint8)
         r0, c0 = max(0, -dr), max(0, -dc)
         r1, c1 = min(dst.height, src.height - dr), min(dst.width, src.width - dc)
         if r1 > r0 and c1 > c0:
-            out[r0:r1, c0:c1] = image[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
-        return out
+            copied[r0:r1, c0:c1] = image[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        return copied
     out = cv2.warpAffine(
         image,
         matrix,
