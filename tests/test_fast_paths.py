@@ -19,7 +19,14 @@ from mapserver.align import (
     structure_mask,
     thin_points,
 )
-from mapserver.diff import distance_to, drop_small, near, offset_distances, raw_differences
+from mapserver.diff import (
+    _linear_quantile,
+    distance_to,
+    drop_small,
+    near,
+    offset_distances,
+    raw_differences,
+)
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
@@ -461,3 +468,15 @@ def test_resampling_onto_the_same_lattice_is_the_warp(seed: int) -> None:
     )
     turned = grid_module.warp_matrix(src, dst, Transform2D(0.01, 0.0, 0.0))
     assert grid_module._whole_pixel_shift(turned) is None
+
+
+@pytest.mark.parametrize("q", [0.25, 0.5, 0.8, 0.9])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_tile_quantile_is_numpys(q: float, dtype: type) -> None:
+    rng = np.random.default_rng(int(q * 100))
+    for _ in range(300):
+        n = int(rng.integers(1, 400))
+        values = (rng.random(n) * rng.choice([0.5, 10.0])).astype(dtype)
+        if rng.random() < 0.3:  # ties, as distances on a grid have
+            values = (np.round(values * 20) / 20).astype(dtype)
+        assert _linear_quantile(values, q) == float(np.quantile(values, q))
