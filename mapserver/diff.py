@@ -143,16 +143,47 @@ def raw_differences(
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~near(g_walls, ~(offset_distances(tol_px) > tol_px))
-        if extra_tolerance_m is not None and added.any():
-            added &= distance_to(g_walls) * resolution > tolerance_m + extra_tolerance_m[box]
+        if extra_tolerance_m is not None:
+            _keep_far(added, g_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
-        if extra_tolerance_m is not None and removed.any():
+        if extra_tolerance_m is not None:
             margin = tolerance_m if removed_tolerance_m is None else removed_tolerance_m
-            removed &= distance_to(l_occ) * resolution > margin + extra_tolerance_m[box]
+            _keep_far(removed, l_occ, margin + extra_tolerance_m[box], resolution)
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
+
+
+def _keep_far(
+    cells: BoolArray, walls: BoolArray, limit_m: NDArray[np.float32], resolution: float
+) -> None:
+    """Clear the True cells of ``cells`` that have a True cell of ``walls`` within their
+    ``limit_m``: in place, exactly as ``cells &= distance_to(walls) * resolution > limit_m``.
+
+    Few cells are left by the time this runs (the fixed tolerance has removed most), so each
+    is checked against the offsets within reach (see :func:`offset_distances`) instead of a
+    distance transform of the whole box; many cells get the transform.
+    """
+    found = cv2.findNonZero(cells.view(np.uint8))
+    if found is None:
+        return
+    at = found.reshape(-1, 2).astype(np.intp)
+    cols, rows = at[:, 0], at[:, 1]
+    limit = limit_m[rows, cols]
+    offsets = offset_distances(float(limit.max()) / resolution)
+    k = offsets.shape[0] // 2
+    reach_m = offsets * resolution  # float32, as distance_to(walls) * resolution is
+    within = np.argwhere(~(reach_m > limit.max()))
+    if len(rows) * len(within) > walls.size // 4:
+        cells[rows, cols] = distance_to(walls)[rows, cols] * resolution > limit
+        return
+    padded = np.pad(walls, k)
+    far = np.ones(len(rows), bool)
+    for dr, dc in within:
+        hit = padded[rows + dr, cols + dc]  # the wall at offset (dr - k, dc - k)
+        far &= ~(hit & ~(reach_m[dr, dc] > limit))
+    cells[rows, cols] = far
 
 
 def misfit_tolerance(

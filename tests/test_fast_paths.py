@@ -20,6 +20,7 @@ from mapserver.align import (
     thin_points,
 )
 from mapserver.diff import (
+    _keep_far,
     _linear_quantile,
     distance_to,
     drop_small,
@@ -480,3 +481,19 @@ def test_the_tile_quantile_is_numpys(q: float, dtype: type) -> None:
         if rng.random() < 0.3:  # ties, as distances on a grid have
             values = (np.round(values * 20) / 20).astype(dtype)
         assert _linear_quantile(values, q) == float(np.quantile(values, q))
+
+
+@pytest.mark.parametrize("seed", range(10))
+@pytest.mark.parametrize("density", [0.0005, 0.01, 0.3])
+def test_keeping_cells_far_from_walls_is_the_thresholded_distance(
+    seed: int, density: float
+) -> None:
+    rng = np.random.default_rng(seed + 1000)  # not _walls' own draws
+    walls = _walls(seed, (200, 260), 0.002)
+    cells = rng.random((200, 260)) < density  # few cells: the offsets; many: the transform
+    resolution = float(rng.choice([0.05, 0.025]))
+    limit = (0.15 + rng.choice([0.0, 0.05, 0.1, 0.35], size=(200, 260))).astype(np.float32)
+    expected = cells & (distance_to(walls) * resolution > limit)
+    got = cells.copy()
+    _keep_far(got, walls, limit, resolution)
+    assert np.array_equal(got, expected)
