@@ -403,6 +403,10 @@ def _search_level(
     grid, field, pad = level.grid, level.field, level.pad
     assert shift_px <= pad
     rel = points - centre
+    width = field.shape[1]
+    flat_field = field.ravel()
+    span = np.arange(-shift_px, shift_px + 1)
+    shifts = (span[:, None] * width + span[None, :]).ravel()  # row-major (i, j)
     out = []
     for theta in thetas:
         c, s = math.cos(theta), math.sin(theta)
@@ -417,11 +421,23 @@ def _search_level(
             out.append((0.0, float(theta), float(target[0]), float(target[1])))
             continue
         keep = (px[:, 0] >= cmin) & (px[:, 0] <= cmax) & (px[:, 1] >= rmin) & (px[:, 1] <= rmax)
-        template = np.zeros((rmax - rmin + 1, cmax - cmin + 1), np.float32)
-        template[px[keep, 1] - rmin, px[keep, 0] - cmin] = 1.0
-        region = field[rmin - shift_px : rmax + shift_px + 1, cmin - shift_px : cmax + shift_px + 1]
-        response = cv2.matchTemplate(region, template, cv2.TM_CCORR) / max(len(points), 1)
-        _, best, _, (j, i) = cv2.minMaxLoc(response)
+        # The correlation of the field with the cloud's cells (each cell once) at every shift.
+        cells = np.unique(px[keep, 1] * width + px[keep, 0])
+        area = (rmax - rmin + 1) * (cmax - cmin + 1)
+        if len(shifts) * len(cells) <= area:
+            # Few shifts (a fine level): the sums of the field at the moved cells, directly.
+            sums = flat_field[cells[None, :] + shifts[:, None]].sum(axis=1, dtype=np.float64)
+            k = int(np.argmax(sums))  # the first best, in row-major order as cv2.minMaxLoc
+            best = sums[k] / max(len(points), 1)
+            i, j = divmod(k, 2 * shift_px + 1)
+        else:
+            template = np.zeros((rmax - rmin + 1, cmax - cmin + 1), np.float32)
+            template[px[keep, 1] - rmin, px[keep, 0] - cmin] = 1.0
+            region = field[
+                rmin - shift_px : rmax + shift_px + 1, cmin - shift_px : cmax + shift_px + 1
+            ]
+            response = cv2.matchTemplate(region, template, cv2.TM_CCORR) / max(len(points), 1)
+            _, best, _, (j, i) = cv2.minMaxLoc(response)
         dx = (j - shift_px) * grid.resolution
         dy = -(i - shift_px) * grid.resolution
         out.append((float(best), float(theta), float(target[0] + dx), float(target[1] + dy)))

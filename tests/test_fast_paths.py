@@ -15,6 +15,7 @@ from mapserver.align import (
     NearestWall,
     _distance_field,
     _make_level,
+    _search_level,
     consistency,
     structure_mask,
     thin_points,
@@ -497,3 +498,50 @@ def test_keeping_cells_far_from_walls_is_the_thresholded_distance(
     got = cells.copy()
     _keep_far(got, walls, limit, resolution)
     assert np.array_equal(got, expected)
+
+
+def _plain_search_level(level, points, centre, target, thetas, shift_px):  # type: ignore[no-untyped-def]
+    """_search_level as first written: cv2.matchTemplate at every rotation."""
+    grid, field, pad = level.grid, level.field, level.pad
+    out = []
+    for theta in thetas:
+        c, s = math.cos(theta), math.sin(theta)
+        q = (points - centre) @ np.array([[c, s], [-s, c]]) + target
+        px = np.rint(grid.to_pixel(q)).astype(np.int64) + pad
+        cmin, rmin = np.maximum(px.min(axis=0), shift_px)
+        cmax = min(px[:, 0].max(), field.shape[1] - 1 - shift_px)
+        rmax = min(px[:, 1].max(), field.shape[0] - 1 - shift_px)
+        keep = (px[:, 0] >= cmin) & (px[:, 0] <= cmax) & (px[:, 1] >= rmin) & (px[:, 1] <= rmax)
+        template = np.zeros((rmax - rmin + 1, cmax - cmin + 1), np.float32)
+        template[px[keep, 1] - rmin, px[keep, 0] - cmin] = 1.0
+        region = field[rmin - shift_px : rmax + shift_px + 1, cmin - shift_px : cmax + shift_px + 1]
+        response = cv2.matchTemplate(region, template, cv2.TM_CCORR) / len(points)
+        _, best, _, (j, i) = cv2.minMaxLoc(response)
+        out.append(
+            (
+                best,
+                theta,
+                target[0] + (j - shift_px) * grid.resolution,
+                target[1] - (i - shift_px) * grid.resolution,
+            )
+        )
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("shift_px", [2, 6])  # a fine level's gathers, a coarse one's template
+def test_the_correlative_search_scores_are_the_template_matchs(seed: int, shift_px: int) -> None:
+    rng = np.random.default_rng(seed)
+    structure = _walls(seed, (240, 260), 0.003)
+    view = GlobalView(Grid(-3.0, -4.0, 0.1, 260, 240), np.zeros((240, 260), np.uint8), structure)
+    level = _make_level(view, 2, pad=shift_px + 4)
+    rows, cols = np.nonzero(structure[40:200, 50:210])
+    points = view.grid.to_world(np.stack([cols + 50, rows + 40], 1))[:: int(rng.integers(1, 4))]
+    centre = points.mean(axis=0)
+    target = centre + rng.normal(0.0, 0.3, 2)
+    thetas = rng.normal(0.0, 0.05, 5)
+    got = _search_level(level, points, centre, target, thetas, shift_px)
+    expected = _plain_search_level(level, points, centre, target, thetas, shift_px)
+    for g, e in zip(got, expected, strict=True):
+        assert g[0] == pytest.approx(e[0], abs=1e-5)
+        assert g[1:] == pytest.approx(e[1:], abs=1e-9)
