@@ -684,6 +684,7 @@ def align(
     candidates: int = 4,
     narrow_theta_rad: float = math.radians(8.0),
     pivot_slam: tuple[float, float] | None = None,
+    widen: Callable[[], GlobalView] | None = None,
 ) -> Alignment:
     """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
 
@@ -698,6 +699,9 @@ def align(
 
     Rotations are searched about ``pivot_slam``, the robot's position in the slam frame when
     known (the prior comes from the robot's pose there), else about the walls' centroid.
+
+    ``view`` must cover the narrow search at least. When it covers only that, ``widen`` gives
+    the view the wide search needs (built only if the wide search runs).
 
     A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
     """
@@ -769,6 +773,10 @@ def align(
 
     chosen_score, chosen = evaluate(min(narrow_theta_rad, search_theta_rad))
     if chosen_score < min_score + 0.1 and search_theta_rad > narrow_theta_rad:
+        if widen is not None:
+            # The scores and the searches below read these two.
+            view = widen()
+            near_walls = view.near_walls(tolerance_m)
         wide_score, wide = evaluate(search_theta_rad)
         if wide_score > chosen_score + min_gain:
             chosen_score, chosen = wide_score, wide

@@ -42,6 +42,9 @@ T = TypeVar("T")
 # How far past the cells the local map lands on the differences look (wall tolerances, the
 # misfit's reach, the removal evidence), metres.
 _ANALYSIS_MARGIN_M = 1.0
+# The alignment searches rotations within this first, and over search_theta_deg only when
+# that finds no convincing fit.
+_NARROW_SEARCH_DEG = 8.0
 
 # Decoded global maps, kept across bundles in this process (a daemon worker serves many bundles
 # of the same building). Two maps: the one in use and the one before it.
@@ -224,18 +227,33 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
     def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
         robot = files.manifest.pose.slam.to_pose()
         pivot = (robot.x, robot.y)
-        view = align_stage.make_view(
-            global_map,
-            local,
-            prior,
-            search_xy_m=settings.align.search_xy_m,
-            search_theta_rad=math.radians(settings.align.search_theta_deg),
-            pivot_slam=pivot,
-        )
+        wide_rad = math.radians(settings.align.search_theta_deg)
+        views: list[align_stage.GlobalView] = []
+
+        def view_for(theta_rad: float) -> align_stage.GlobalView:
+            views.append(
+                align_stage.make_view(
+                    global_map,
+                    local,
+                    prior,
+                    search_xy_m=settings.align.search_xy_m,
+                    search_theta_rad=theta_rad,
+                    # Room for the images' margin around where the local map lands.
+                    margin_m=max(settings.render.margin_m, _ANALYSIS_MARGIN_M),
+                    pivot_slam=pivot,
+                )
+            )
+            return views[-1]
+
+        # The view for the narrow search first (most priors are within a few degrees): the
+        # wide one, several times larger, is built only when the wide search runs.
+        narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
         result = align_stage.align(
             local,
-            view,
+            view_for(narrow),
             prior,
+            narrow_theta_rad=narrow,
+            widen=lambda: view_for(wide_rad),
             refine=settings.align.refine,
             search_xy_m=settings.align.search_xy_m,
             search_theta_rad=math.radians(settings.align.search_theta_deg),
@@ -244,7 +262,7 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
             jump_m=settings.align.jump_m,
             pivot_slam=pivot,
         )
-        return view, result
+        return views[-1], result
 
     view, alignment = stages.run("align", _align)
     warnings += alignment.warnings

@@ -136,3 +136,26 @@ def test_mislocalised_robot_far_from_the_map_centre() -> None:
     result = align(cut.local, view, prior, pivot_slam=pivot)
     d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
     assert result.trusted and d < 0.03 and a < 0.3
+
+
+@pytest.mark.parametrize("dtheta_deg", [3.0, 25.0])
+def test_the_wide_view_is_built_only_when_the_narrow_search_fails(dtheta_deg: float) -> None:
+    """The search starts on a view that covers only the narrow rotations; a prior 25 degrees
+    off needs the wide search, which asks for the wide view once; 3 degrees off never does."""
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    prior = offset(TRUE, 0.8, -0.6, dtheta_deg, CENTRE)
+    narrow = math.radians(8.0)
+    asked: list[float] = []
+
+    def widen():  # type: ignore[no-untyped-def]
+        asked.append(1.0)
+        return make_view(
+            world, cut.local, prior, search_xy_m=2.5, search_theta_rad=math.radians(35)
+        )
+
+    view = make_view(world, cut.local, prior, search_xy_m=2.5, search_theta_rad=narrow)
+    result = align(cut.local, view, prior, narrow_theta_rad=narrow, widen=widen)
+    d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
+    assert result.trusted and d < 0.03 and a < 0.3
+    assert len(asked) == (1 if dtheta_deg > 8 else 0)
