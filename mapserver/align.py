@@ -758,9 +758,16 @@ def align(
             t = icp(icp_walls, t, view.grid, nearest, max_distance_m=icp_reach)
             if all(_distance(t, u, centre, radius) > 0.05 for _, u in polished):
                 polished.append((agree(t), t))
-        # The consistency check warps the whole local map: only for the likeliest few.
+        # The consistency check warps the whole local map: only for the likeliest few, and not
+        # for one that cannot be chosen below. A score is at most sqrt(agreement), and the
+        # choice below takes nothing more than 0.02 under the best per candidate before it.
         polished.sort(key=lambda pt: -pt[0])
-        scored = [(score(t, p), t) for p, t in polished[:3]]
+        likeliest = polished[:3]
+        reach = 0.02 * (len(likeliest) - 1)
+        scored: list[tuple[float, Transform2D]] = []
+        for p, t in likeliest:
+            if not scored or math.sqrt(p) >= max(st[0] for st in scored) - reach:
+                scored.append((score(t, p), t))
         best_score, best = max(scored, key=lambda st: st[0])
         for s_, t in scored:
             # Repeated structure: a distinct solution that scores about as well but lies
@@ -783,9 +790,11 @@ def align(
     # A last polish with every wall cell, not only the thinned ones.
     nearest = view.nearest_wall_near(chosen.apply(walls), reach_m=icp_reach)
     final = icp(walls, chosen, view.grid, nearest, max_distance_m=icp_reach / 2, iterations=8)
-    final_score = score(final)
-    if final_score >= chosen_score:
-        chosen_score, chosen = final_score, final
+    final_agreement = agree(final)
+    if math.sqrt(final_agreement) >= chosen_score:  # else it cannot score as well
+        final_score = score(final, final_agreement)
+        if final_score >= chosen_score:
+            chosen_score, chosen = final_score, final
 
     jump = _distance(chosen, prior, centre, radius) > jump_m
     if chosen_score < prior_score + (min_gain if jump else 1e-6):
