@@ -71,6 +71,8 @@ def _crop(image: NDArray[T], window: Window) -> NDArray[T]:
 
 def _resized(crop: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
     size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
+    if size == (crop.shape[1], crop.shape[0]):
+        return crop
     interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
     return np.asarray(cv2.resize(crop, size, interpolation=interpolation), dtype=np.uint8)
 
@@ -82,14 +84,30 @@ def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
 def _mask_scaled(mask_crop: NDArray[np.bool_], window: Window) -> NDArray[np.bool_]:
     """A mask already cropped to the window, scaled. Max-pools when shrinking, so that thin
     walls and small differences stay visible."""
+    size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
+    if size == (mask_crop.shape[1], mask_crop.shape[0]):
+        return mask_crop.copy()
     return _resized(mask_crop.astype(np.uint8) * 255, window) > 0
 
 
-def _greys(state: NDArray[np.uint8], free: int, occupied: int, unknown: int) -> NDArray[np.uint8]:
-    """A BGR image of cell states in three greys (one table lookup, not a pass per state)."""
-    table = np.full(256, unknown, np.uint8)
-    table[FREE], table[OCCUPIED] = free, occupied
-    return np.asarray(cv2.cvtColor(cv2.LUT(state, table), cv2.COLOR_GRAY2BGR), np.uint8)
+def _painted(
+    state: NDArray[np.uint8],
+    greys: tuple[int, int, int],
+    layers: list[tuple[NDArray[np.bool_], BGR]],
+) -> NDArray[np.uint8]:
+    """A BGR image of cell states in three greys (free, occupied, unknown), with each layer's
+    cells painted over in its colour, later layers on top. Every pixel gets a colour number
+    and one table lookup colours them all (not a pass per state or layer on three channels)."""
+    free, occupied, unknown = greys
+    numbers = np.full(256, 2, np.uint8)
+    numbers[FREE], numbers[OCCUPIED] = 0, 1
+    colour_of = np.asarray(cv2.LUT(state, numbers), np.uint8)
+    palette = np.zeros((256, 1, 3), np.uint8)
+    palette[:3, 0] = [(free,) * 3, (occupied,) * 3, (unknown,) * 3]
+    for number, (mask, colour) in enumerate(layers, start=3):
+        np.putmask(colour_of, mask, number)
+        palette[number, 0] = colour
+    return np.asarray(cv2.LUT(cv2.merge([colour_of] * 3), palette), np.uint8)
 
 
 def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:
@@ -152,9 +170,8 @@ def overlay(
 ) -> NDArray[np.uint8]:
     """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
     the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
-    image = _greys(_scaled(global_state, window), 255, 60, 205)
     local_occ = _mask_scaled(_crop(local_state, window) == OCCUPIED, window)
-    image[local_occ] = LOCAL
+    image = _painted(_scaled(global_state, window), (255, 60, 205), [(local_occ, LOCAL)])
     if roi_polygon:
         pts = window.to_image(grid, np.array(roi_polygon))
         cv2.polylines(image, [pts], True, ROI_COLOUR, 2, cv2.LINE_AA)
@@ -188,9 +205,14 @@ def diff_image(
     differences: list[Difference],
 ) -> NDArray[np.uint8]:
     """The filtered difference mask (added red, removed blue) over faint global walls."""
-    image = _greys(_scaled(global_state, window), 255, 215, 255)
-    image[_mask_scaled(_crop(added, window), window)] = ADDED
-    image[_mask_scaled(_crop(removed, window), window)] = REMOVED
+    image = _painted(
+        _scaled(global_state, window),
+        (255, 215, 255),
+        [
+            (_mask_scaled(_crop(added, window), window), ADDED),
+            (_mask_scaled(_crop(removed, window), window), REMOVED),
+        ],
+    )
     _boxes(image, grid, window, differences)
     _legend(image, [("added", ADDED), ("removed", REMOVED)])
     return image
