@@ -410,7 +410,7 @@ def _search_level(
     out = []
     for theta in thetas:
         c, s = math.cos(theta), math.sin(theta)
-        q = rel @ np.array([[c, s], [-s, c]]) + target
+        q = np.stack([c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1]], 1) + target
         px = np.rint(grid.to_pixel(q)).astype(np.int64) + pad
         cmin, rmin = px.min(axis=0)
         cmax, rmax = px.max(axis=0)
@@ -597,7 +597,9 @@ def icp(
         msx, msy, mdx, mdy = ux.mean(), uy.mean(), vx.mean(), vy.mean()
         ux, uy, vx, vy = ux - msx, uy - msy, vx - mdx, vy - mdy
         # The closed-form rigid fit: the rotation from the cross-covariance of the pairs.
-        theta = math.atan2(float(ux @ vy - uy @ vx), float(ux @ vx + uy @ vy))
+        # Sums of products, not BLAS dot products (see Transform2D.apply).
+        sxy = float(np.sum(ux * vy) - np.sum(uy * vx))
+        theta = math.atan2(sxy, float(np.sum(ux * vx) + np.sum(uy * vy)))
         c, s = math.cos(theta), math.sin(theta)
         new = Transform2D(theta, float(mdx - (c * msx - s * msy)), float(mdy - (s * msx + c * msy)))
         step = math.hypot(new.tx - transform.tx, new.ty - transform.ty)

@@ -75,8 +75,13 @@ class Transform2D:
         """Map points of shape (N, 2) (or one point of shape (2,)) from source to target."""
         p = np.asarray(points_xy, dtype=float)
         c, s = math.cos(self.theta), math.sin(self.theta)
-        rot = np.array([[c, -s], [s, c]])
-        return np.asarray(p @ rot.T + np.array([self.tx, self.ty]), dtype=np.float64)
+        # Elementwise, not a matrix product: numpy hands those to a BLAS whose threads spin
+        # on every core, which costs a daemon worker beside another one a third of its speed.
+        out = np.empty(p.shape)
+        x, y = p[..., 0], p[..., 1]
+        out[..., 0] = c * x - s * y + self.tx
+        out[..., 1] = s * x + c * y + self.ty
+        return out
 
     def compose(self, other: Transform2D) -> Transform2D:
         """``self o other``: first ``other``, then ``self``."""
