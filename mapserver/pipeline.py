@@ -110,9 +110,9 @@ class _Inputs:
     global_map: OccupancyMap
 
 
-def _load(bundle_dir: Path, config: Config) -> _Inputs:
+def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inputs:
     try:
-        files = check_bundle_files(bundle_dir)
+        files = check_bundle_files(bundle_dir, verify_checksums=not checksums_verified)
     except BundleIncomplete as error:
         # process runs on bundles said to be complete: a missing file is an error here.
         raise BundleError(error.problem, file=error.file) from None
@@ -206,9 +206,19 @@ def _difference_doc(index: int, d: cluster_stage.Difference) -> dict[str, Any]:
     }
 
 
-def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = None) -> Outcome:
+def process_bundle(
+    bundle_dir: Path,
+    config: Config,
+    *,
+    bundle_id: str | None = None,
+    checksums_verified: bool = False,
+) -> Outcome:
     """Process one complete bundle. Raises a :class:`~mapserver.errors.MapserverError` subclass
-    for bad input (its ``stage`` says where it failed). Reads the inputs, never modifies them."""
+    for bad input (its ``stage`` says where it failed). Reads the inputs, never modifies them.
+
+    ``checksums_verified``: the manifest's checksums were checked against these very files
+    already (the daemon does when it takes a bundle), so they are not hashed again.
+    """
     bundle_dir = Path(bundle_dir)
     bundle_id = bundle_id or bundle_dir.resolve().name
     if not is_valid_bundle_id(bundle_id):
@@ -219,7 +229,9 @@ def process_bundle(bundle_dir: Path, config: Config, *, bundle_id: str | None = 
         )
     stages = _Stages(bundle_id)
     settings = config.pipeline
-    inputs = stages.run("load", lambda: _load(bundle_dir, config))
+    inputs = stages.run(
+        "load", lambda: _load(bundle_dir, config, checksums_verified=checksums_verified)
+    )
     files, local, global_map = inputs.files, inputs.local, inputs.global_map
     warnings = list(global_map.warnings) + list(local.warnings)
     prior = files.manifest.nav2_from_slam_prior()

@@ -124,6 +124,13 @@ def _init_worker(setup: Callable[[], None] | None, daemon_pid: int, threads: int
 _POLL_WHILE_BUSY_S = 0.05
 
 
+def process_taken_bundle(bundle_dir: Path, config: Config, *, bundle_id: str) -> Outcome:
+    """The workers' default process function: :func:`process_bundle` on a bundle the daemon
+    took, whose checksums it verified when it took it (the bundle has been in the daemon's own
+    staging folder since), so they are not hashed a second time."""
+    return process_bundle(bundle_dir, config, bundle_id=bundle_id, checksums_verified=True)
+
+
 def _broke(future: Future[WorkDone]) -> bool:
     """Whether a finished job's worker pool broke under it (a worker process died)."""
     return not future.cancelled() and isinstance(future.exception(), BrokenProcessPool)
@@ -189,7 +196,7 @@ class Service:
         self,
         config: Config,
         *,
-        process: ProcessFn = process_bundle,
+        process: ProcessFn = process_taken_bundle,
         worker_setup: Callable[[], None] | None = None,
         stop_timeout: float = 60.0,
         checkpoint: Callable[[str], None] | None = None,

@@ -160,6 +160,19 @@ def test_completeness_waits_for_files_and_checksums(tmp_path: Path) -> None:
         check_bundle_files(d)
 
 
+def test_checksums_verified_before_are_not_hashed_again(tmp_path: Path) -> None:
+    # The daemon verifies them when it takes a bundle; its workers only check the files are
+    # there (a wrong checksum passes, a missing checksummed file does not).
+    d = _bundle(tmp_path)
+    data = dict(MANIFEST, checksums={"slam_map.pgm": "0" * 64})
+    (d / "bundle.yaml").write_text(yaml.safe_dump(data))
+    assert check_bundle_files(d, verify_checksums=False).slam_image == d / "slam_map.pgm"
+    data = dict(MANIFEST, checksums={"slam_map.pgm": "0" * 64, "extra.bin": "0" * 64})
+    (d / "bundle.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(BundleIncomplete, match=r"'extra\.bin' is not there yet"):
+        check_bundle_files(d, verify_checksums=False)
+
+
 def test_paths_that_leave_the_bundle_are_errors(tmp_path: Path) -> None:
     d = _bundle(tmp_path)
     for name in ("../outside.yaml", "/etc/passwd"):
