@@ -120,8 +120,8 @@ def _init_worker(setup: Callable[[], None] | None, daemon_pid: int, threads: int
         setup()
 
 
-# How long one turn of the main loop may spend checking uploads while workers run.
-_POLL_WHILE_BUSY_S = 0.05
+# How long one turn of the main loop may spend checking uploads.
+_POLL_TURN_S = 0.05
 
 
 def process_taken_bundle(bundle_dir: Path, config: Config, *, bundle_id: str) -> Outcome:
@@ -312,11 +312,10 @@ class Service:
             # Finished bundles first: their workers get the next bundle in the queue before
             # anything else here runs (publishing, hashing new uploads).
             self._collect()
-            # Bounded, so that a large backlog does not keep the watchdog waiting, nor a worker
-            # that finishes meanwhile waiting for its next bundle (the rest is looked at on the
-            # next turn, a moment later).
-            budget = _POLL_WHILE_BUSY_S if self._running else self._ping_every
-            for decision in self._tracker.poll(budget_s=min(budget, self._ping_every)):
+            # Bounded, so that a large backlog (checksums to hash) keeps neither the watchdog nor
+            # the workers waiting: what is taken goes out below, the rest is looked at on the
+            # next turn, a moment later.
+            for decision in self._tracker.poll(budget_s=min(_POLL_TURN_S, self._ping_every)):
                 _guarded(decision.name, self._take, decision)
             self._dispatch()
             if not _observer_alive(observer):
