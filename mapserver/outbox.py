@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
+_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 RESULT = "result.yaml"
 ERROR = "error.yaml"
@@ -90,7 +91,15 @@ def _text(value: str) -> str:
 
 
 def _dump(document: dict[str, Any]) -> bytes:
-    text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, allow_unicode=True)
+    # libyaml's emitter when PyYAML has it: a result with a long ROI outline takes ~40 ms in the
+    # pure-Python one, in the daemon's main process, for every bundle.
+    text = yaml.dump(
+        document,
+        Dumper=_DUMPER,
+        sort_keys=False,
+        default_flow_style=None,
+        allow_unicode=True,
+    )
     return text.encode("utf-8")
 
 
