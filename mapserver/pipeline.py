@@ -286,13 +286,13 @@ def process_bundle(
         drift = None
         if a.deform and alignment.trusted:
             # One wall point per two work cells: the shifts are averages over metres of wall.
+            spacing = 2 * grid.resolution
             walls = align_stage.thin_points(
-                align_stage.known_points(local, state=OCCUPIED), 2 * grid.resolution
+                align_stage.known_points(local, state=OCCUPIED), spacing
             )
             nearest = view.nearest_wall_near(
                 transform.apply(walls), reach_m=2 * a.deform_max_shift_m + 0.5
             )
-            spacing = 2 * grid.resolution
             # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
             fields: list[deform.DriftField] = []
             for tile_m, max_shift_m in _drift_passes(
