@@ -4,7 +4,7 @@ route (:class:`Change`, :func:`plant_changes`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -103,9 +103,32 @@ def _visible(
     return True
 
 
-def _candidates(site: _Site, lo_m: float, hi_m: float) -> NDArray[np.intp]:
+def _free_cells(
+    site: _Site, rng: np.random.Generator, distance_m: tuple[float, float], attempts: int
+) -> Iterator[tuple[int, int, int]]:
+    """``(attempt, row, col)``: up to ``attempts`` free cells drawn at random among those
+    ``distance_m`` from the route and away from earlier changes (none if there are none)."""
+    lo_m, hi_m = distance_m
     ok = (site.state == FREE) & (site.d_route_m >= lo_m) & (site.d_route_m <= hi_m) & ~site.blocked
-    return np.flatnonzero(ok)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return
+    w = site.state.shape[1]
+    for attempt in range(attempts):
+        r, c = divmod(int(idx[rng.integers(idx.size)]), w)
+        yield attempt, r, c
+
+
+def _fits(site: _Site, footprint: tuple[int, int, NDArray[np.bool_]], clearance_m: float) -> bool:
+    """Whether a new obstacle's footprint lies on free cells, clear of the route and of earlier
+    changes."""
+    r0, c0, mask = footprint
+    reg = site.region(r0, c0, mask)
+    return not (
+        np.any(site.state[reg][mask] != FREE)
+        or site.d_route_m[reg][mask].min() < clearance_m + 0.1
+        or site.blocked[reg][mask].any()
+    )
 
 
 def _place_added(
@@ -115,12 +138,7 @@ def _place_added(
     distance_m: tuple[float, float],
     attempts: int,
 ) -> tuple[str, NDArray[np.float64], tuple[int, int, NDArray[np.bool_]]] | None:
-    idx = _candidates(site, *distance_m)
-    if idx.size == 0:
-        return None
-    w = site.state.shape[1]
-    for attempt in range(attempts):
-        r, c = divmod(int(idx[rng.integers(idx.size)]), w)
+    for attempt, r, c in _free_cells(site, rng, distance_m, attempts):
         cx, cy = site.frame.xy(np.array([c + 0.5, r + 0.5]))
         shape = str(rng.choice(["box", "column", "wall"], p=[0.45, 0.3, 0.25]))
         if shape == "box":
@@ -139,16 +157,9 @@ def _place_added(
             )
             poly = _rect_poly(cx, cy, rng.uniform(2.0, 4.0), rng.uniform(0.15, 0.25), angle)
         fp = _footprint(site.frame, site.state.shape, [poly])
-        if fp is None:
+        if fp is None or not _fits(site, fp, clearance_m):
             continue
         r0, c0, mask = fp
-        reg = site.region(r0, c0, mask)
-        if (
-            np.any(site.state[reg][mask] != FREE)
-            or site.d_route_m[reg][mask].min() < clearance_m + 0.1
-            or site.blocked[reg][mask].any()
-        ):
-            continue
         # Most of the time insist on a line of sight from the route, so that most changes are seen.
         if attempt < 0.7 * attempts and not _visible(
             site, np.array([c + 0.5, r + 0.5]), r0, c0, mask
@@ -216,12 +227,7 @@ def _place_people(
     distance_m: tuple[float, float],
     attempts: int,
 ) -> tuple[str, NDArray[np.float64], tuple[int, int, NDArray[np.bool_]]] | None:
-    idx = _candidates(site, *distance_m)
-    if idx.size == 0:
-        return None
-    w = site.state.shape[1]
-    for _ in range(attempts):
-        r, c = divmod(int(idx[rng.integers(idx.size)]), w)
+    for _, r, c in _free_cells(site, rng, distance_m, attempts):
         cx, cy = site.frame.xy(np.array([c + 0.5, r + 0.5]))
         people = [(cx, cy, rng.uniform(0.2, 0.3))]
         size = 1 if rng.random() < 0.6 else int(rng.integers(2, 5))
@@ -235,15 +241,7 @@ def _place_people(
                 people.append((qx, qy, rad))
         discs = [_circle_poly(x, y, rad, 24) for x, y, rad in people]
         fp = _footprint(site.frame, site.state.shape, discs)
-        if fp is None:
-            continue
-        r0, c0, mask = fp
-        reg = site.region(r0, c0, mask)
-        if (
-            np.any(site.state[reg][mask] != FREE)
-            or site.d_route_m[reg][mask].min() < clearance_m + 0.1
-            or site.blocked[reg][mask].any()
-        ):
+        if fp is None or not _fits(site, fp, clearance_m):
             continue
         if len(people) == 1:
             return "person", _circle_poly(cx, cy, people[0][2], 16), fp
