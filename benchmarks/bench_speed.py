@@ -55,7 +55,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -139,7 +139,6 @@ class Data:
     pool: list[Path]
     scaling: dict[int, Path]
     scaling_truth: Path
-    airport_pixels: int
 
 
 def _recipe_stamp() -> str:
@@ -176,21 +175,7 @@ def _session_in_window(
     true_state = big.state.copy()
     true_state[r0 : r0 + size, c0 : c0 + size] = truth
     session = synth.simulate_session(big, route, rng=rng, true_state=true_state, changes=changes)
-    changes = tuple(replace(c, observed=session.seen_cells.get(c.id, 0) >= 5) for c in changes)
-    # The manifest's trajectory: a pose about every metre, and the last (as make_scenario).
-    xy = np.array([(p.x, p.y) for p in session.trajectory])
-    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
-    keep = np.flatnonzero(np.diff(np.floor(travelled + 1e-9), prepend=-1) > 0).tolist()
-    if keep[-1] != len(xy) - 1:
-        keep.append(len(xy) - 1)
-    return synth.SyntheticBundle(
-        world=big,
-        true_state=true_state,
-        route=tuple(route),
-        changes=changes,
-        session=session,
-        trajectory=tuple(session.trajectory[i] for i in keep),
-    )
+    return synth.bundle_from_session(big, true_state, route, changes, session)
 
 
 def _scaling_window(big: OccupancyMap, size: int) -> tuple[int, int]:
@@ -223,7 +208,7 @@ def _crop(big: OccupancyMap, r0: int, c0: int, size: int) -> OccupancyMap:
     return from_states(state, big.resolution, (round(ox, 6), round(oy, 6), 0.0))
 
 
-def build_data(root: Path, quick: bool) -> Data:
+def build_data(root: Path) -> Data:
     """Generate (or reuse, when the recipe is unchanged) every bundle of the benchmark."""
     stamp = _recipe_stamp()
     marker = root / "recipe.sha256"
@@ -238,7 +223,6 @@ def build_data(root: Path, quick: bool) -> Data:
         pool=[airport, *pool_dirs],
         scaling=scaling,
         scaling_truth=root / "scaling" / "truth" / "scale.yaml",
-        airport_pixels=AIRPORT_PX[0] * AIRPORT_PX[1],
     )
     if marker.is_file() and marker.read_text().strip() == stamp:
         say(f"data: reusing {root}")
@@ -523,10 +507,8 @@ def _wait_until(check: Callable[[], bool], deadline: float, poll_s: float = 0.02
 
 @dataclass(frozen=True)
 class DrainRun:
-    n: int
     results: int
     failed: int
-    workers: int
     seconds: float
     startup_seconds: float
     note: str = ""
@@ -571,7 +553,7 @@ def drain_backlog(pool: Sequence[Path], n: int, work: Path, workers: int) -> Dra
                 return "ready:" in log_path.read_text(errors="replace")
 
             if not _wait_until(ready, started + 120, poll_s=0.01):
-                return DrainRun(n, 0, 0, workers, math.nan, math.nan, "never became ready")
+                return DrainRun(0, 0, math.nan, math.nan, "never became ready")
             t_ready = time.monotonic()
 
             def done_count() -> tuple[int, int]:
@@ -593,7 +575,7 @@ def drain_backlog(pool: Sequence[Path], n: int, work: Path, workers: int) -> Dra
             except subprocess.TimeoutExpired:
                 daemon.kill()
                 daemon.wait()
-    return DrainRun(n, results, failed, workers, t_done - t_ready, t_ready - started, note)
+    return DrainRun(results, failed, t_done - t_ready, t_ready - started, note)
 
 
 # --------------------------------------------------------------------------------------------
@@ -638,7 +620,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = args.out.resolve()
     checks: list[Check] = []
     try:
-        data = build_data(out / "data", quick)
+        data = build_data(out / "data")
         say(f"airport bundle: {describe_bundle(data.airport)}")
         say(f"scaling bundles: {describe_bundle(data.scaling[SCALE_SIZES[0]])} ... 8000x8000 px")
         config = Config()
@@ -690,10 +672,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         say()
         say("== 2. peak RSS, one airport bundle in a fresh interpreter")
         rss = peak_rss(data.airport)
-        limit = TARGET_RSS_FACTOR * data.airport_pixels / MIB + TARGET_RSS_EXTRA_MIB
+        airport_pixels = AIRPORT_PX[0] * AIRPORT_PX[1]  # one byte each
+        limit = TARGET_RSS_FACTOR * airport_pixels / MIB + TARGET_RSS_EXTRA_MIB
         say(
             f"  after imports {rss['import_rss'] / MIB:.0f} MiB; peak (VmHWM) "
-            f"{rss['hwm'] / MIB:.0f} MiB; limit 3 x {data.airport_pixels / MIB:.1f} MiB "
+            f"{rss['hwm'] / MIB:.0f} MiB; limit 3 x {airport_pixels / MIB:.1f} MiB "
             f"+ 150 MiB = {limit:.0f} MiB"
         )
         checks.append(

@@ -726,17 +726,6 @@ def write_bundle(
     (directory / "bundle.yaml").write_text(text)
 
 
-def _manifest_trajectory(session: synth.Session, spacing_m: float = 1.0) -> list[Pose2D]:
-    """SLAM poses about every ``spacing_m`` metres travelled, and the last one."""
-    xy = np.array([(p.x, p.y) for p in session.trajectory])
-    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
-    marks = np.floor(travelled / spacing_m + 1e-9)
-    keep = np.flatnonzero(np.diff(marks, prepend=-1) > 0).tolist()
-    if keep[-1] != len(xy) - 1:
-        keep.append(len(xy) - 1)
-    return [session.trajectory[i] for i in keep]
-
-
 def _plain(value: Any) -> Any:
     """YAML-friendly copy: tuples to lists, numpy scalars to Python, floats rounded."""
     if isinstance(value, dict):
@@ -825,7 +814,7 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
         global_map=global_map,
         pose_nav2=session.pose_nav2,
         pose_slam=session.pose_slam,
-        trajectory=_manifest_trajectory(session),
+        trajectory=list(synth.thin_trajectory(session.trajectory)),
         robot=plan.robot,
         stamp=stamp,
     )

@@ -22,7 +22,12 @@ from mapserver.synth.buildings import make_airport_map, make_office_map, roughen
 from mapserver.synth.changes import Change, plant_changes
 from mapserver.synth.files import write_bundle, write_scenario, write_truth
 from mapserver.synth.route import plan_route
-from mapserver.synth.scenario import SyntheticBundle, make_scenario
+from mapserver.synth.scenario import (
+    SyntheticBundle,
+    bundle_from_session,
+    make_scenario,
+    thin_trajectory,
+)
 from mapserver.synth.session import DriftReport, Session, simulate_session
 from mapserver.synth.session import _walkers as _walkers  # benchmarks/make_scenarios.py
 
@@ -31,6 +36,7 @@ __all__ = [
     "DriftReport",
     "Session",
     "SyntheticBundle",
+    "bundle_from_session",
     "make_airport_map",
     "make_office_map",
     "make_scenario",
@@ -38,6 +44,7 @@ __all__ = [
     "plant_changes",
     "roughen_map",
     "simulate_session",
+    "thin_trajectory",
     "write_bundle",
     "write_scenario",
     "write_truth",

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -129,20 +130,48 @@ def make_scenario(
     session = simulate_session(
         world, route, rng=rng, true_state=truth, changes=changes, **session_options
     )
-    changes = tuple(
-        replace(c, observed=session.seen_cells.get(c.id, 0) >= min_seen_cells) for c in changes
+    return bundle_from_session(
+        world,
+        truth,
+        route,
+        changes,
+        session,
+        min_seen_cells=min_seen_cells,
+        trajectory_spacing_m=trajectory_spacing_m,
     )
-    xy = np.array([(p.x, p.y) for p in session.trajectory])
+
+
+def bundle_from_session(
+    world: OccupancyMap,
+    true_state: NDArray[np.uint8],
+    route: Sequence[Pose2D],
+    changes: Sequence[Change],
+    session: Session,
+    *,
+    min_seen_cells: int = 5,
+    trajectory_spacing_m: float = 1.0,
+) -> SyntheticBundle:
+    """The bundle of a simulated session: a change counts as observed when the session saw at
+    least ``min_seen_cells`` of its cells; the manifest's trajectory is thinned to a pose about
+    every ``trajectory_spacing_m`` metres."""
+    return SyntheticBundle(
+        world=world,
+        true_state=true_state,
+        route=tuple(route),
+        changes=tuple(
+            replace(c, observed=session.seen_cells.get(c.id, 0) >= min_seen_cells) for c in changes
+        ),
+        session=session,
+        trajectory=thin_trajectory(session.trajectory, trajectory_spacing_m),
+    )
+
+
+def thin_trajectory(poses: Sequence[Pose2D], spacing_m: float = 1.0) -> tuple[Pose2D, ...]:
+    """A pose about every ``spacing_m`` metres travelled, and the last one."""
+    xy = np.array([(p.x, p.y) for p in poses])
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
-    marks = np.floor(travelled / trajectory_spacing_m + 1e-9)
+    marks = np.floor(travelled / spacing_m + 1e-9)
     keep = np.flatnonzero(np.diff(marks, prepend=-1) > 0).tolist()
     if keep[-1] != len(xy) - 1:
         keep.append(len(xy) - 1)
-    return SyntheticBundle(
-        world=world,
-        true_state=truth,
-        route=tuple(route),
-        changes=changes,
-        session=session,
-        trajectory=tuple(session.trajectory[i] for i in keep),
-    )
+    return tuple(poses[i] for i in keep)
