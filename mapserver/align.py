@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.diff import near, offset_distances
+from mapserver.diff import distance_to, near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
@@ -120,7 +120,6 @@ class Alignment:
     """
 
     nav2_from_slam: Transform2D
-    prior: Transform2D
     method: str
     refined: bool
     score: float
@@ -171,16 +170,6 @@ def known_points(m: OccupancyMap, *, state: int | None = None) -> FloatArray:
     return np.stack([x, y], axis=1)
 
 
-def footprint(local: OccupancyMap) -> tuple[FloatArray, float]:
-    """Centroid (slam frame) of the local map's known cells and the radius that holds them all."""
-    pts = known_points(local)
-    if len(pts) == 0:
-        raise ValueError("the local map has no known cells")
-    centre = pts.mean(axis=0)
-    radius = float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max()) + local.resolution
-    return centre, radius
-
-
 def _known_corners(local: OccupancyMap) -> FloatArray:
     """The four corners (slam metres) of the bounding box of the local map's known cells."""
     x, y, w, h = cv2.boundingRect((local.state != UNKNOWN).view(np.uint8))
@@ -208,7 +197,7 @@ def make_view(
     and shifted by up to ``search_xy_m``. Its pixels coincide with the global map's.
     """
     if pivot_slam is None:
-        centre, _ = footprint(local)
+        centre = known_points(local).mean(axis=0)
     else:
         centre = np.asarray(pivot_slam, dtype=float)
     # The box that holds the local map's known area turned by any angle the search tries about
@@ -246,13 +235,7 @@ def make_view(
     if c1 <= c0 or r1 <= r0:
         state = np.full(grid.shape, UNKNOWN, np.uint8)
         return GlobalView(grid, state, np.zeros(grid.shape, bool))
-    crop_grid = Grid(
-        src.x0 + c0 * src.resolution,
-        src.y0 + (global_map.height - r1) * src.resolution,
-        src.resolution,
-        c1 - c0,
-        r1 - r0,
-    )
+    crop_grid = src.crop((r0, r1, c0, c1))
     crop = OccupancyMap(
         global_map.state[r0:r1, c0:c1],
         global_map.occupancy[r0:r1, c0:c1],
@@ -266,15 +249,6 @@ def make_view(
 
 
 # --- scoring ---------------------------------------------------------------------------------
-
-
-def _distance_field(structure: NDArray[np.bool_]) -> NDArray[np.float32]:
-    """Distance in pixels from every cell to the nearest structure cell."""
-    if not structure.any():
-        return np.full(structure.shape, 1e6, np.float32)
-    return np.asarray(
-        cv2.distanceTransform((~structure).view(np.uint8), cv2.DIST_L2, 5), np.float32
-    )
 
 
 def _lookup(image: NDArray[np.generic], grid: Grid, xy: FloatArray, fill: float) -> FloatArray:
@@ -368,7 +342,7 @@ def _make_level(view: GlobalView, factor: int, pad: int) -> _Level:
         structure = pooled > 0
     else:
         structure, grid = view.structure, g
-    d = _distance_field(structure)
+    d = distance_to(structure)
     field = np.exp(-0.5 * (d / 1.0) ** 2).astype(np.float32)
     field = cv2.copyMakeBorder(field, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
     return _Level(grid, field, pad)
@@ -544,23 +518,20 @@ class NearestWall:
             )
         return cache[grid]
 
-
-def nearest_wall_m(
-    nearest_colrow: FloatArray | NearestWall, grid: Grid
-) -> Callable[[NDArray[np.intp], NDArray[np.intp]], FloatArray]:
-    """``(rows, cols) -> grid.to_world(nearest_colrow[rows, cols])``: (N, 2) metres of the
-    nearest wall cells, converted once per wall cell when the field is a :class:`NearestWall`."""
-    if isinstance(nearest_colrow, NearestWall):
-        in_metres = nearest_colrow.in_metres(grid)
-        return lambda rows, cols: in_metres[rows, cols]
-    return lambda rows, cols: grid.to_world(nearest_colrow[rows, cols])
+    def nearest_m(self, x: FloatArray, y: FloatArray, grid: Grid) -> FloatArray:
+        """(N, 2) metres of the wall cell nearest the cells that hold points ``(x, y)`` (metres
+        on ``grid``, the field's grid); 1e9 for points off the field, as far as no wall."""
+        res = grid.resolution
+        col = np.rint((x - grid.x0) / res - 0.5).astype(np.int64)
+        row = np.rint(grid.height - (y - grid.y0) / res - 0.5).astype(np.int64)
+        return self.in_metres(grid)[row, col]
 
 
 def icp(
     points_slam: FloatArray,
     start: Transform2D,
     grid: Grid,
-    nearest_colrow: FloatArray | NearestWall,
+    nearest: NearestWall,
     *,
     max_distance_m: float,
     iterations: int = 30,
@@ -572,23 +543,16 @@ def icp(
     obstacles, people, drift) are left out; the threshold shrinks to a third over the iterations.
     """
     transform = start
-    h, w = nearest_colrow.shape[:2]
-    lookup = nearest_wall_m(nearest_colrow, grid)
     # Coordinates as separate contiguous columns: every step below is a 1-D operation.
     sx, sy = np.ascontiguousarray(points_slam[:, 0]), np.ascontiguousarray(points_slam[:, 1])
-    res = grid.resolution
     for k in range(iterations):
         limit = max_distance_m * (1.0 - 0.66 * k / max(iterations - 1, 1))
         c, s = math.cos(transform.theta), math.sin(transform.theta)
         qx = c * sx - s * sy + transform.tx
         qy = s * sx + c * sy + transform.ty
-        # grid.to_pixel, rounded; cells outside the grid are looked up clipped and never used.
-        col = np.rint((qx - grid.x0) / res - 0.5).astype(np.int64)
-        row = np.rint(grid.height - (qy - grid.y0) / res - 0.5).astype(np.int64)
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        target = lookup(np.clip(row, 0, h - 1), np.clip(col, 0, w - 1))
+        target = nearest.nearest_m(qx, qy, grid)  # points off the field: never within limit
         ex, ey = target[:, 0] - qx, target[:, 1] - qy
-        use = inside & (ex * ex + ey * ey <= limit * limit)
+        use = ex * ex + ey * ey <= limit * limit
         n = int(np.count_nonzero(use))
         if n < 10:
             break
@@ -657,12 +621,12 @@ def _search(
     coarse = _search_level(levels[0], thin_points(walls, res0), centre, target0, thetas, shift0)
     seeds = [(coarse[i][1], np.array(coarse[i][2:])) for i in _local_maxima(coarse, candidates)]
     seeds.append((prior.theta, target0))
+    fine_points = [thin_points(walls, level.grid.resolution) for level in levels[1:]]
     out = []
     for theta, target in seeds:
         step = step0
-        for level in levels[1:]:
+        for level, pts in zip(levels[1:], fine_points, strict=True):
             step /= 2.0
-            pts = thin_points(walls, level.grid.resolution)
             turns = np.asarray(theta + step * np.arange(-2, 3), dtype=np.float64)
             rows = _search_level(level, pts, centre, target, turns, 2)
             best = max(rows)
@@ -727,9 +691,7 @@ def align(
             warnings.append(reason)
         elif not trusted:
             warnings.append(_untrusted(prior_score, min_score))
-        return Alignment(
-            prior, prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings)
-        )
+        return Alignment(prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings))
 
     if len(walls) < 20 or not view.structure.any():
         return keep_prior("too few walls in the local or global map to check the alignment")
@@ -806,7 +768,6 @@ def align(
         warnings.append(_untrusted(chosen_score, min_score))
     return Alignment(
         chosen,
-        prior,
         "pose+correlative+icp",
         True,
         chosen_score,
@@ -830,7 +791,6 @@ __all__ = [
     "agreement",
     "align",
     "consistency",
-    "footprint",
     "icp",
     "known_points",
     "make_view",

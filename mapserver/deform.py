@@ -18,13 +18,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.align import NearestWall, nearest_wall_m
+from mapserver.align import NearestWall
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.maps import UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
-# warp_local's node spacing: a grid cropped at multiples of it warps to the same cells.
+# warp_local's node spacing, a power of two: a grid cropped at multiples of it warps to the
+# same cells.
 WARP_STEP_PX = 8
 
 
@@ -105,7 +106,7 @@ def estimate_drift(
     walls_slam: FloatArray,
     nav2_from_slam: Transform2D,
     grid: Grid,
-    nearest_colrow: FloatArray | NearestWall,
+    nearest: NearestWall,
     *,
     tile_m: float = 6.0,
     max_shift_m: float = 0.4,
@@ -118,8 +119,7 @@ def estimate_drift(
     Each node uses the walls within a square of side ``tile_m`` around it; nodes with fewer than
     ``min_points`` walls, or whose walls barely match, borrow from their neighbours. The shifts
     are median-filtered (an odd node is an outlier, not drift) and clipped to ``max_shift_m``.
-    ``nearest_colrow`` is the (H, W, 2) field of the nearest global wall's (col, row) on
-    ``grid``. With ``initial``, the shifts are estimated on top of that field's (a finer pass
+    ``nearest`` is the field of the nearest global walls on ``grid``. With ``initial``, the shifts are estimated on top of that field's (a finer pass
     after a coarse one).
     """
     spacing = tile_m / 2.0
@@ -127,12 +127,9 @@ def estimate_drift(
     hi = walls_slam.max(axis=0) + spacing
     cols = max(2, math.ceil((hi[0] - lo[0]) / spacing) + 1)
     rows = max(2, math.ceil((hi[1] - lo[1]) / spacing) + 1)
-    shifts = np.zeros((rows, cols, 2), np.float32)
-    valid = np.zeros((rows, cols), bool)
     base = nav2_from_slam.apply(walls_slam)
     if initial is not None:
         base = base + initial.at(walls_slam)
-    h, w = nearest_colrow.shape[:2]
     node_i = np.floor((walls_slam[:, 1] - lo[1]) / spacing + 0.5).astype(int)
     node_j = np.floor((walls_slam[:, 0] - lo[0]) / spacing + 0.5).astype(int)
     # All nodes at once: one (node, point) pair for every wall point and each of the 3 x 3
@@ -150,7 +147,6 @@ def estimate_drift(
     node, point = node[order], point[order]
     n_nodes = rows * cols
     active = np.bincount(node, minlength=n_nodes) >= min_points
-    nearest_xy = nearest_wall_m(nearest_colrow, grid)
     shift_x, shift_y = np.zeros(n_nodes), np.zeros(n_nodes)
     used = np.zeros(n_nodes, np.int64)
     bx, by = base[:, 0].copy(), base[:, 1].copy()
@@ -162,14 +158,9 @@ def estimate_drift(
         limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
         qx = bx[point] + shift_x[node]
         qy = by[point] + shift_y[node]
-        # grid.to_pixel, by coordinate; cells outside the grid are looked up clipped and never
-        # used.
-        pc = np.rint((qx - grid.x0) / grid.resolution - 0.5).astype(np.int64)
-        pr = np.rint(grid.height - (qy - grid.y0) / grid.resolution - 0.5).astype(np.int64)
-        inside = (pc >= 0) & (pc < w) & (pr >= 0) & (pr < h)
-        target = nearest_xy(np.clip(pr, 0, h - 1), np.clip(pc, 0, w - 1))
+        target = nearest.nearest_m(qx, qy, grid)  # points off the field: never within limit
         rx, ry = target[:, 0] - qx, target[:, 1] - qy
-        use = inside & (rx * rx + ry * ry <= limit * limit)
+        use = rx * rx + ry * ry <= limit * limit
         node_used = node[use]
         counted = np.bincount(node_used, minlength=n_nodes)
         used[active] = counted[active]
@@ -215,9 +206,7 @@ def _source_coords(
         # The shift is in nav2; bring it into the slam frame and move the source back by it.
         sx = sx - (c * d[:, 0] + s * d[:, 1]).reshape(shape)
         sy = sy - (-s * d[:, 0] + c * d[:, 1]).reshape(shape)
-    lgrid = Grid.of_map(local)
-    u = (sx - lgrid.x0) / lgrid.resolution - 0.5
-    v = lgrid.height - (sy - lgrid.y0) / lgrid.resolution - 0.5
+    u, v = local.world_to_pixel(sx, sy)
     return u, v
 
 
@@ -226,29 +215,22 @@ def warp_local(
     grid: Grid,
     nav2_from_slam: Transform2D,
     drift: DriftField | DriftStack | None = None,
-    *,
-    step_px: int = WARP_STEP_PX,
 ) -> NDArray[np.uint8]:
     """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
 
     For a grid cell at nav2 point ``x`` the source is ``T^-1(x - shift(T^-1 x))``: the shift is
     small and smooth, so evaluating it at the rigid pre-image is exact enough. The source
-    coordinates are computed on nodes every ``step_px`` pixels and interpolated linearly in
-    between, which is exact for the rigid part and as smooth as the drift field itself.
+    coordinates are computed on nodes every ``WARP_STEP_PX`` pixels and interpolated linearly in
+    between, which is exact for the rigid part and as smooth as the drift field itself. Only the
+    box the known cells can land on is computed; it starts on a multiple of the step (a power of
+    two), so the nodes and their interpolation weights are those of the whole grid.
     """
     if drift is None:
         return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
-    s = step_px
+    s = WARP_STEP_PX
     out = np.full(grid.shape, UNKNOWN, np.uint8)
-    # Only a power-of-two step keeps the nodes' interpolation weights exact when the box moves
-    # the nodes' origin, so any other step gets the whole grid.
-    whole = (0, grid.height, 0, grid.width)
     margin_px = drift.max_shift_m() / grid.resolution + 2.0
-    box = (
-        whole
-        if s & (s - 1)
-        else landing_box(local, grid, nav2_from_slam, margin_px=margin_px, step_px=s)
-    )
+    box = landing_box(local, grid, nav2_from_slam, margin_px=margin_px, step_px=s)
     if box is None:
         return out
     r0, r1, c0, c1 = box

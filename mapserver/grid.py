@@ -79,26 +79,12 @@ class Grid:
         y = self.y0 + (self.height - p[:, 1] - 0.5) * self.resolution
         return np.stack([x, y], axis=1)
 
-    def rescaled(self, resolution: float) -> Grid:
-        """A grid over the same box with another resolution (the box grows to whole pixels)."""
-        return Grid.covering(
-            self.x0,
-            self.y0,
-            self.x0 + self.width * self.resolution,
-            self.y0 + self.height * self.resolution,
-            resolution,
-        )
-
     def crop(self, box: tuple[int, int, int, int]) -> Grid:
         """The grid of the cells ``box`` = (row0, row1, col0, col1) of this one: the same
         cells in the same places, indexed from the box's corner."""
         r0, r1, c0, c1 = box
         r = self.resolution
         return Grid(self.x0 + c0 * r, self.y0 + (self.height - r1) * r, r, c1 - c0, r1 - r0)
-
-    def extent(self) -> tuple[float, float, float, float]:
-        r = self.resolution
-        return (self.x0, self.y0, self.x0 + self.width * r, self.y0 + self.height * r)
 
 
 def warp_matrix(src: Grid, dst: Grid, dst_from_src: Transform2D) -> NDArray[np.float64]:

@@ -330,8 +330,9 @@ def process_bundle(
 
     view, local_state, drift = stages.run("warp", _warp)
     grid = view.grid
-    if drift is not None and drift.max_shift_m() > 0.1:
-        log.info("%s: drift corrected, up to %.2f m", bundle_id, drift.max_shift_m())
+    drift_m = drift.max_shift_m() if drift is not None else 0.0
+    if drift_m > 0.1:
+        log.info("%s: drift corrected, up to %.2f m", bundle_id, drift_m)
     region = stages.run(
         "roi", lambda: _make_roi(config, files, transform, local_state, grid, warnings)
     )
@@ -461,7 +462,7 @@ def process_bundle(
             "score": round(alignment.score, 3),
             "prior_score": round(alignment.prior_score, 3),
             # The largest slam-drift correction applied on top of the rigid transform, metres.
-            "drift_m": round(drift.max_shift_m(), 3) if drift is not None else 0.0,
+            "drift_m": round(drift_m, 3),
         },
         "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
         "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],

@@ -13,7 +13,6 @@ from mapserver import grid as grid_module
 from mapserver.align import (
     GlobalView,
     NearestWall,
-    _distance_field,
     _make_level,
     _search_level,
     consistency,
@@ -324,7 +323,7 @@ def test_near_walls_is_the_thresholded_distance_field(seed: int, tolerance_m: fl
     structure = _walls(seed, grid.shape, 0.01)
     view = GlobalView(grid, np.full(grid.shape, FREE, np.uint8), structure)
     # The distance field's float32 values in a float64 array, thresholded.
-    expected = _distance_field(structure).astype(np.float64) * grid.resolution <= tolerance_m
+    expected = distance_to(structure).astype(np.float64) * grid.resolution <= tolerance_m
     assert np.array_equal(view.near_walls(tolerance_m), expected)
 
 
