@@ -117,20 +117,20 @@ def raw_differences(
             f"arrays must share one shape, got {global_state.shape}, {local_state.shape}, "
             f"{roi.shape}"
         )
-    tol_px = tolerance_m / resolution
-    removed_tol_px = (
-        tolerance_m if removed_tolerance_m is None else removed_tolerance_m
-    ) / resolution
+    removed_tol_m = tolerance_m if removed_tolerance_m is None else removed_tolerance_m
+    tol_px, removed_tol_px = tolerance_m / resolution, removed_tol_m / resolution
     added_full = np.zeros(roi.shape, bool)
     removed_full = np.zeros(roi.shape, bool)
-    # Only the ROI's bounding box can differ, and only walls within the tolerances of it count:
-    # work on that box plus the reach of the tolerances (the same cells, less area).
+    # Only the ROI's bounding box can differ, and only walls within the tolerances of it count
+    # (the widest, with the misfit's extra): work on that box plus their reach (the same cells,
+    # less area).
     x, y, w, h = cv2.boundingRect(roi.view(np.uint8))
     if w == 0:
         return DiffMasks(added_full, removed_full)
-    reach = (offset_distances(tol_px).shape[0] // 2, offset_distances(removed_tol_px).shape[0] // 2)
-    r0, c0 = max(y - max(reach), 0), max(x - max(reach), 0)
-    r1, c1 = min(y + h + max(reach), roi.shape[0]), min(x + w + max(reach), roi.shape[1])
+    extra_m = float(extra_tolerance_m.max()) if extra_tolerance_m is not None else 0.0
+    reach = offset_distances(max(tol_px, removed_tol_px) + extra_m / resolution).shape[0] // 2
+    r0, c0 = max(y - reach, 0), max(x - reach, 0)
+    r1, c1 = min(y + h + reach, roi.shape[0]), min(x + w + reach, roi.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
     g_state, l_state, roi = global_state[box], local_state[box], roi[box]
     g_occ = g_state == OCCUPIED
@@ -149,8 +149,7 @@ def raw_differences(
     if removed.any() and l_occ.any():
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
         if extra_tolerance_m is not None:
-            margin = tolerance_m if removed_tolerance_m is None else removed_tolerance_m
-            _keep_far(removed, l_occ, margin + extra_tolerance_m[box], resolution)
+            _keep_far(removed, l_occ, removed_tol_m + extra_tolerance_m[box], resolution)
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
 

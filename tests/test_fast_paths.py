@@ -544,3 +544,49 @@ def test_the_correlative_search_scores_are_the_template_matchs(seed: int, shift_
     for g, e in zip(got, expected, strict=True):
         assert g[0] == pytest.approx(e[0], abs=1e-5)
         assert g[1:] == pytest.approx(e[1:], abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_raw_differences_with_the_misfit_tolerance_on_the_roi_box_are_the_plain_ones(
+    seed: int,
+) -> None:
+    # The box around the ROI must reach as far as the widest tolerance, the extra included: a
+    # wall just past the box but within the widened tolerance still explains a local wall.
+    rng = np.random.default_rng(seed + 100)
+    shape = (90, 130)
+    g, loc = _states(rng, shape), _states(rng, shape)
+    walls = rng.random(shape) < 0.01
+    roi = np.zeros(shape, bool)
+    r, c = rng.integers(10, 60), rng.integers(10, 100)
+    roi[r : r + rng.integers(1, 20), c : c + rng.integers(1, 20)] = True
+    extra = rng.choice(np.array([0.0, 0.1, 0.35], np.float32), shape)
+    got = raw_differences(
+        g,
+        loc,
+        roi,
+        resolution=0.05,
+        tolerance_m=0.15,
+        removed_tolerance_m=0.25,
+        global_walls=walls,
+        extra_tolerance_m=extra,
+    )
+    g_walls = (g == OCCUPIED) | walls | (g == UNKNOWN)
+    l_occ = loc == OCCUPIED
+    added = l_occ & (g == FREE) & roi & (distance_to(g_walls) * 0.05 > 0.15 + extra)
+    removed = (g == OCCUPIED) & (loc == FREE) & roi & (distance_to(l_occ) * 0.05 > 0.25 + extra)
+    assert np.array_equal(got.added, added)
+    assert np.array_equal(got.removed, removed)
+
+
+def test_a_global_wall_just_past_the_roi_box_still_explains_a_local_wall() -> None:
+    shape = (60, 60)
+    g = np.full(shape, FREE, np.uint8)
+    loc = np.full(shape, FREE, np.uint8)
+    roi = np.zeros(shape, bool)
+    roi[20:40, 20:30] = True
+    loc[30, 29] = OCCUPIED  # on the ROI's edge
+    g[30, 37] = OCCUPIED  # 0.4 m away: beyond 0.15 m, within 0.15 + 0.35 m
+    extra = np.full(shape, 0.35, np.float32)
+    got = raw_differences(g, loc, roi, resolution=0.05, tolerance_m=0.15, extra_tolerance_m=extra)
+    assert not got.added[30, 29]
+    assert raw_differences(g, loc, roi, resolution=0.05, tolerance_m=0.15).added[30, 29]
