@@ -69,39 +69,46 @@ def _crop(image: NDArray[T], window: Window) -> NDArray[T]:
     return image[window.row0 : window.row0 + window.rows, window.col0 : window.col0 + window.cols]
 
 
-def _resized(crop: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
-    size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
-    if size == (crop.shape[1], crop.shape[0]):
-        return crop
-    interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
-    return np.asarray(cv2.resize(crop, size, interpolation=interpolation), dtype=np.uint8)
+def _size(window: Window) -> tuple[int, int]:
+    """(width, height) of the image of ``window``."""
+    return max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale))
 
 
-def _scaled(image: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
-    return _resized(_crop(image, window), window)
+def _state_scaled(state_crop: NDArray[np.uint8], window: Window) -> NDArray[np.uint8]:
+    """Cell states cropped to the window, scaled: each image pixel takes one cell's state
+    (states are categories, never averaged)."""
+    size = _size(window)
+    if size == (state_crop.shape[1], state_crop.shape[0]):
+        return state_crop
+    return np.asarray(cv2.resize(state_crop, size, interpolation=cv2.INTER_NEAREST), np.uint8)
 
 
 def _mask_scaled(mask_crop: NDArray[np.bool_], window: Window) -> NDArray[np.bool_]:
     """A mask already cropped to the window, scaled. Max-pools when shrinking, so that thin
     walls and small differences stay visible."""
-    size = (max(1, round(window.cols * window.scale)), max(1, round(window.rows * window.scale)))
+    size = _size(window)
     if size == (mask_crop.shape[1], mask_crop.shape[0]):
         return mask_crop.copy()
-    return _resized(mask_crop.astype(np.uint8) * 255, window) > 0
+    interpolation = cv2.INTER_NEAREST if window.scale >= 1 else cv2.INTER_AREA
+    return cv2.resize(mask_crop.astype(np.uint8) * 255, size, interpolation=interpolation) > 0
 
 
 def _painted(
-    state: NDArray[np.uint8],
+    state_crop: NDArray[np.uint8],
+    window: Window,
     greys: tuple[int, int, int],
     layers: list[tuple[NDArray[np.bool_], BGR]],
 ) -> NDArray[np.uint8]:
-    """A BGR image of cell states in three greys (free, occupied, unknown), with each layer's
-    cells painted over in its colour, later layers on top. Every pixel gets a colour number
-    and one table lookup colours them all (not a pass per state or layer on three channels)."""
+    """A BGR image of the window's cell states in three greys (free, occupied, unknown), with
+    each layer's cells painted over in its colour, later layers on top. Every pixel gets a
+    colour number and one table lookup colours them all (not a pass per state or layer on
+    three channels). Shrunk, the occupied cells are max-pooled like the layers: thin walls stay."""
     free, occupied, unknown = greys
     numbers = np.full(256, 2, np.uint8)
     numbers[FREE], numbers[OCCUPIED] = 0, 1
-    colour_of = np.asarray(cv2.LUT(state, numbers), np.uint8)
+    colour_of = np.asarray(cv2.LUT(_state_scaled(state_crop, window), numbers), np.uint8)
+    if window.scale < 1:
+        np.putmask(colour_of, _mask_scaled(state_crop == OCCUPIED, window), 1)
     palette = np.zeros((256, 1, 3), np.uint8)
     palette[:3, 0] = [(free,) * 3, (occupied,) * 3, (unknown,) * 3]
     for number, (mask, colour) in enumerate(layers, start=3):
@@ -171,7 +178,7 @@ def overlay(
     """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
     the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
     local_occ = _mask_scaled(_crop(local_state, window) == OCCUPIED, window)
-    image = _painted(_scaled(global_state, window), (255, 60, 205), [(local_occ, LOCAL)])
+    image = _painted(_crop(global_state, window), window, (255, 60, 205), [(local_occ, LOCAL)])
     if roi_polygon:
         pts = window.to_image(grid, np.array(roi_polygon))
         cv2.polylines(image, [pts], True, ROI_COLOUR, 2, cv2.LINE_AA)
@@ -206,7 +213,8 @@ def diff_image(
 ) -> NDArray[np.uint8]:
     """The filtered difference mask (added red, removed blue) over faint global walls."""
     image = _painted(
-        _scaled(global_state, window),
+        _crop(global_state, window),
+        window,
         (255, 215, 255),
         [
             (_mask_scaled(_crop(added, window), window), ADDED),
