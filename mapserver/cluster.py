@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import Grid
+from mapserver.grid import Grid, nonzero_cells
 
 IntArray = NDArray[np.intp]
 Engine = Literal["grid", "scikit-learn"]
@@ -62,12 +62,9 @@ def cluster_mask(
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
     its pixels are in it. ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
-    # The True pixels, row-major, found in their bounding box (a difference mask is sparse).
-    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
-    if w == 0:
+    rows, cols = nonzero_cells(mask)
+    if len(rows) == 0:
         return []
-    rows, cols = np.nonzero(mask[y : y + h, x : x + w])
-    rows, cols = rows + y, cols + x
     xy = grid.to_world(np.stack([cols, rows], axis=1))
     if engine == "scikit-learn":
         labels = _sklearn_dbscan()(eps=eps_m, min_samples=min_samples).fit_predict(xy)

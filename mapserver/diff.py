@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -164,11 +165,9 @@ def _keep_far(
     is checked against the offsets within reach (see :func:`offset_distances`) instead of a
     distance transform of the whole box; many cells get the transform.
     """
-    found = cv2.findNonZero(cells.view(np.uint8))
-    if found is None:
+    rows, cols = nonzero_cells(cells)
+    if len(rows) == 0:
         return
-    at = found.reshape(-1, 2).astype(np.intp)
-    cols, rows = at[:, 0], at[:, 1]
     limit = limit_m[rows, cols]
     offsets = offset_distances(float(limit.max()) / resolution)
     k = offsets.shape[0] // 2
@@ -221,12 +220,11 @@ def misfit_tolerance(
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
     counted = local_walls[box] & (dist_m <= max_m)
-    found = cv2.findNonZero(counted.view(np.uint8))  # np.nonzero's cells, faster
-    if found is None or len(found) < min_walls:
+    rows, cols = nonzero_cells(counted)
+    if len(rows) < min_walls:
         return tol
-    cells = found.reshape(-1, 2).astype(np.intp)
-    dist_m_at = dist_m[cells[:, 1], cells[:, 0]]
-    rows, cols = cells[:, 1] + r0, cells[:, 0] + c0
+    dist_m_at = dist_m[rows, cols]
+    rows, cols = rows + r0, cols + c0
     tile = max(1, round(tile_m / resolution))
     # Tiles on the lattice given by tile_offset_px, and a ring of empty ones around the walls'
     # (they borrow from their neighbours).

@@ -169,3 +169,15 @@ def landing_box(
     if c1 <= c0 or r1 <= r0:
         return None
     return int(r0), int(r1), int(c0), int(c1)
+
+
+def nonzero_cells(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """``np.nonzero(mask)``: the rows and columns of the True cells in row-major order, found
+    with ``cv2.findNonZero`` in their bounding box (several times faster on a sparse mask)."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    if w == 0:
+        none = np.zeros(0, np.intp)
+        return none, none.copy()
+    found = cv2.findNonZero(mask[y : y + h, x : x + w].view(np.uint8))
+    cells = found.reshape(-1, 2).astype(np.intp)
+    return cells[:, 1] + y, cells[:, 0] + x

@@ -29,7 +29,7 @@ from mapserver.diff import (
     raw_differences,
 )
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid, landing_box, resample
+from mapserver.grid import Grid, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.roi import _outline
 
@@ -590,3 +590,14 @@ def test_a_global_wall_just_past_the_roi_box_still_explains_a_local_wall() -> No
     got = raw_differences(g, loc, roi, resolution=0.05, tolerance_m=0.15, extra_tolerance_m=extra)
     assert not got.added[30, 29]
     assert raw_differences(g, loc, roi, resolution=0.05, tolerance_m=0.15).added[30, 29]
+
+
+@pytest.mark.parametrize("density", [0.0, 0.001, 0.05, 0.6])
+def test_nonzero_cells_are_numpys(density: float) -> None:
+    rng = np.random.default_rng(int(density * 1000))
+    mask = rng.random((70, 90)) < density
+    for m in (mask, mask[5:60, 7:80], mask[::2, ::3]):  # views too, strided ones
+        rows, cols = nonzero_cells(m)
+        expected_rows, expected_cols = np.nonzero(m)
+        assert np.array_equal(rows, expected_rows) and np.array_equal(cols, expected_cols)
+        assert rows.dtype == np.intp and cols.dtype == np.intp
