@@ -49,7 +49,6 @@ def cluster_mask(
     *,
     eps_m: float,
     min_samples: int,
-    min_pixels: int = 1,
     min_area_m2: float = 0.0,
     evidence: NDArray[np.bool_] | None = None,
     min_evidence: float = 0.5,
@@ -58,7 +57,7 @@ def cluster_mask(
     """Group the True pixels of ``mask`` (on ``grid``) into obstacles with DBSCAN.
 
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
-    ``min_pixels`` or ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
+    ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
     its pixels are in it. ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
@@ -81,7 +80,7 @@ def cluster_mask(
         members = labels == label
         pts = xy[members]
         area = len(pts) * grid.resolution**2
-        if len(pts) < min_pixels or area < min_area_m2:
+        if area < min_area_m2:
             continue
         if evidence is not None and evidence[rows[members], cols[members]].mean() < min_evidence:
             continue

@@ -358,7 +358,6 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
 
 
 __all__ = [
-    "FREE",
     "DiffMasks",
     "distance_to",
     "drop_small",

@@ -34,7 +34,7 @@ from mapserver.errors import (
 from mapserver.geometry import Pose2D, Transform2D
 from mapserver.grid import Grid, landing_box
 from mapserver.mapcache import MapCache
-from mapserver.maps import OCCUPIED, OccupancyMap, load_map
+from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -138,7 +138,7 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
             "the manifest names no nav2_map and no reference_map is configured",
             file=bundle_dir / "bundle.yaml",
         )
-    if not (local.state != 255).any():
+    if not (local.state != UNKNOWN).any():
         raise BundleError("the local map has no known cells", file=files.slam_image)
     return _Inputs(files, local, global_map)
 
@@ -160,26 +160,24 @@ def _make_roi(
     config: Config,
     files: BundleFiles,
     nav2_from_slam: Transform2D,
+    route_xy: np.ndarray | None,
     local_state: np.ndarray,
     grid: Grid,
     warnings: list[str],
 ) -> roi.Roi:
     settings = config.pipeline.roi
-    observed = roi.observed(local_state, grid)
     if settings.strategy == "box":
         region = roi.box(_robot_nav2(files, nav2_from_slam), grid, size_m=settings.box_size_m)
     elif settings.strategy == "heading":
         region = roi.heading(_robot_nav2(files, nav2_from_slam), grid, size_m=settings.box_size_m)
-    elif settings.strategy == "trajectory":
-        route = _route_nav2(files, nav2_from_slam)
-        if route is None:
-            warnings.append("roi 'trajectory' needs a trajectory in bundle.yaml; used 'observed'")
-            return observed
-        region = roi.trajectory(route, grid, radius_m=settings.trajectory_radius_m)
+    elif settings.strategy == "trajectory" and route_xy is not None:
+        region = roi.trajectory(route_xy, grid, radius_m=settings.trajectory_radius_m)
     else:
-        return observed
+        if settings.strategy == "trajectory":
+            warnings.append("roi 'trajectory' needs a trajectory in bundle.yaml; used 'observed'")
+        return roi.observed(local_state, grid)
     # Unknown cells never differ anyway; intersecting keeps the mask honest for the images.
-    return roi.Roi(region.strategy, region.mask & observed.mask, region.polygon)
+    return roi.Roi(region.strategy, region.mask & (local_state != UNKNOWN), region.polygon)
 
 
 def _drift_passes(tile_m: float, max_shift_m: float, passes: int) -> list[tuple[float, float]]:
@@ -235,6 +233,9 @@ def process_bundle(
     files, local, global_map = inputs.files, inputs.local, inputs.global_map
     warnings = list(global_map.warnings) + list(local.warnings)
     prior = files.manifest.nav2_from_slam_prior()
+    # Around where the local map lands, the views keep room for the differences' reach and the
+    # images' margin.
+    margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
 
     def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
         robot = files.manifest.pose.slam.to_pose()
@@ -251,7 +252,7 @@ def process_bundle(
                     search_xy_m=settings.align.search_xy_m,
                     search_theta_rad=theta_rad,
                     # Room for the images' margin around where the local map lands.
-                    margin_m=max(settings.render.margin_m, _ANALYSIS_MARGIN_M),
+                    margin_m=margin_m,
                     pivot_slam=pivot,
                 )
             )
@@ -268,7 +269,7 @@ def process_bundle(
             widen=lambda: view_for(wide_rad),
             refine=settings.align.refine,
             search_xy_m=settings.align.search_xy_m,
-            search_theta_rad=math.radians(settings.align.search_theta_deg),
+            search_theta_rad=wide_rad,
             min_score=settings.align.min_score,
             min_gain=settings.align.min_gain,
             jump_m=settings.align.jump_m,
@@ -281,7 +282,7 @@ def process_bundle(
     transform = alignment.nav2_from_slam
     grid = view.grid
 
-    def _warp() -> tuple[align_stage.GlobalView, np.ndarray, deform.DriftStack | None]:
+    def _warp() -> tuple[align_stage.GlobalView, np.ndarray, float]:
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
@@ -316,7 +317,6 @@ def process_bundle(
             drift = deform.DriftStack(tuple(fields))
         # From here on, only where the local map lands matters (with room for the tolerances and
         # the images' margin): the search view around it is several times larger.
-        margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
         drift_m = drift.max_shift_m() if drift is not None else 0.0
         box = landing_box(
             local,
@@ -326,15 +326,15 @@ def process_bundle(
             step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
         )
         work = view.cropped(box) if box is not None else view
-        return work, deform.warp_local(local, work.grid, transform, drift), drift
+        return work, deform.warp_local(local, work.grid, transform, drift), drift_m
 
-    view, local_state, drift = stages.run("warp", _warp)
+    view, local_state, drift_m = stages.run("warp", _warp)
+    route_xy = _route_nav2(files, transform)  # the trajectory ROI and the overlay draw it
     grid = view.grid
-    drift_m = drift.max_shift_m() if drift is not None else 0.0
     if drift_m > 0.1:
         log.info("%s: drift corrected, up to %.2f m", bundle_id, drift_m)
     region = stages.run(
-        "roi", lambda: _make_roi(config, files, transform, local_state, grid, warnings)
+        "roi", lambda: _make_roi(config, files, transform, route_xy, local_state, grid, warnings)
     )
 
     def _diff() -> tuple[diff_stage.DiffMasks, np.ndarray]:
@@ -368,19 +368,15 @@ def process_bundle(
             global_walls=view.structure,
             extra_tolerance_m=tolerance_map,
         )
-        min_px = max(
-            1, round(settings.diff.min_local_cells * (local.resolution / grid.resolution) ** 2)
-        )
+        min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
         filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
         evidence = diff_stage.removal_evidence(
             view.state,
             local_state,
             filtered.removed,
             resolution=grid.resolution,
-            depth_m=max(
-                settings.diff.removed_depth_m, 2 * max(local.resolution, global_map.resolution)
-            ),
-            see_through_m=settings.diff.see_through_m,
+            depth_m=max(d.removed_depth_m, 2 * max(local.resolution, global_map.resolution)),
+            see_through_m=d.see_through_m,
         )
         return filtered, evidence
 
@@ -428,7 +424,7 @@ def process_bundle(
             local_state,
             region.polygon,
             differences,
-            route_xy=_route_nav2(files, transform),
+            route_xy=route_xy,
             title=title,
         )
         dimg = render.diff_image(grid, window, view.state, masks.added, masks.removed, differences)
