@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from queue import Empty, SimpleQueue
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
@@ -37,7 +37,9 @@ from mapserver.errors import MapserverError
 from mapserver.inbox import EVENT_TYPES, Decision, InboxHandler, Rejected, StabilityTracker, scan
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store
-from mapserver.pipeline import Outcome, process_bundle
+
+if TYPE_CHECKING:
+    from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +47,7 @@ CRASH_ENV = "MAPSERVER_TEST_CRASH_AT"
 """Test hook: the name of a checkpoint (see :class:`~mapserver.outbox.Store`, plus
 ``submitted``) at which the daemon kills itself with SIGKILL, to test recovery from each one."""
 
-ProcessFn = Callable[..., Outcome]
+ProcessFn = Callable[..., "Outcome"]
 
 
 def env_checkpoint() -> Callable[[str], None]:
@@ -128,6 +130,8 @@ def process_taken_bundle(bundle_dir: Path, config: Config, *, bundle_id: str) ->
     """The workers' default process function: :func:`process_bundle` on a bundle the daemon
     took, whose checksums it verified when it took it (the bundle has been in the daemon's own
     staging folder since), so they are not hashed a second time."""
+    from mapserver.pipeline import process_bundle  # workers have it (fork server preload)
+
     return process_bundle(bundle_dir, config, bundle_id=bundle_id, checksums_verified=True)
 
 
