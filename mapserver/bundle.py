@@ -24,7 +24,7 @@ from pydantic import (
     model_validator,
 )
 
-from mapserver.errors import BundleError, BundleIncomplete
+from mapserver.errors import BundleError, BundleIncomplete, describe_validation
 from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
 
 MANIFEST = "bundle.yaml"
@@ -132,19 +132,6 @@ class Manifest(_Model):
         return [p.to_pose() for p in self.trajectory or []]
 
 
-def _describe(error: ValidationError) -> str:
-    parts = []
-    for item in error.errors():
-        key = ".".join(str(p) for p in item["loc"]) or "(top level)"
-        if item["type"] == "extra_forbidden":
-            parts.append(f"unknown key '{key}'")
-        elif item["type"] == "missing":
-            parts.append(f"missing key '{key}'")
-        else:
-            parts.append(f"'{key}': {item['msg']}")
-    return "; ".join(parts)
-
-
 def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
     """Parse and validate the text of ``bundle.yaml``; errors name the field."""
     try:
@@ -157,7 +144,7 @@ def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
     try:
         return Manifest.model_validate(data)
     except ValidationError as error:
-        raise BundleError(_describe(error), file=source) from None
+        raise BundleError(describe_validation(error), file=source) from None
 
 
 def read_manifest(bundle_dir: Path) -> Manifest:
@@ -187,7 +174,7 @@ def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path
 def map_image_name(map_yaml: Path) -> str:
     """The ``image:`` entry of a map YAML, read without loading the image (for completeness)."""
     try:
-        data = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
+        data = yaml.load(map_yaml.read_text(encoding="utf-8"), Loader=_LOADER)
     except FileNotFoundError:
         raise BundleIncomplete("missing", file=map_yaml) from None
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
@@ -233,7 +220,6 @@ def check_bundle_files(bundle_dir: Path, *, verify_checksums: bool = True) -> Bu
     """
     manifest = read_manifest(bundle_dir)
     source = bundle_dir / MANIFEST
-    files: dict[str, Path] = {}
     yamls: dict[str, Path | None] = {"slam": None, "nav2": None}
     images: dict[str, Path | None] = {"slam": None, "nav2": None}
     for key, name in (("slam", manifest.slam_map), ("nav2", manifest.nav2_map)):
@@ -252,8 +238,6 @@ def check_bundle_files(bundle_dir: Path, *, verify_checksums: bool = True) -> Bu
         if not image_path.is_file():
             raise BundleIncomplete(f"map image '{image_name}' is not there yet", file=yaml_path)
         yamls[key], images[key] = yaml_path, image_path
-        files[name] = yaml_path
-        files[image_rel] = image_path
     for name, expected in (manifest.checksums or {}).items():
         path = safe_member(bundle_dir, name, what="checksummed file", source=source)
         if not path.is_file():

@@ -15,7 +15,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from mapserver.errors import ConfigError
+from mapserver.errors import ConfigError, describe_validation
 
 ENV_VAR = "MAPSERVER_CONFIG"
 
@@ -140,17 +140,6 @@ class Config(_Frozen):
         return self.workers or (os.cpu_count() or 1)
 
 
-def _describe(error: ValidationError) -> str:
-    parts = []
-    for item in error.errors():
-        key = ".".join(str(p) for p in item["loc"]) or "(top level)"
-        if item["type"] == "extra_forbidden":
-            parts.append(f"unknown key '{key}'")
-        else:
-            parts.append(f"'{key}': {item['msg']}")
-    return "; ".join(parts)
-
-
 def parse_config(data: object, *, base_dir: Path, source: Path | None = None) -> Config:
     """Validate configuration data (a mapping) and resolve its paths against ``base_dir``."""
     if data is None:
@@ -160,7 +149,7 @@ def parse_config(data: object, *, base_dir: Path, source: Path | None = None) ->
     try:
         config = Config.model_validate(data)
     except ValidationError as error:
-        raise ConfigError(_describe(error), file=source) from None
+        raise ConfigError(describe_validation(error), file=source) from None
     return config.resolved(base_dir)
 
 

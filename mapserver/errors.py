@@ -14,6 +14,10 @@ enough context (the stage, the file, the field) to write one line a person can a
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 
 class MapserverError(Exception):
@@ -62,3 +66,17 @@ class BundleIncomplete(BundleError):
 
 class ProcessingError(MapserverError):
     default_stage = "process"
+
+
+def describe_validation(error: ValidationError) -> str:
+    """One line for a person from a pydantic validation error: every bad field named."""
+    parts = []
+    for item in error.errors():
+        key = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        if item["type"] == "extra_forbidden":
+            parts.append(f"unknown key '{key}'")
+        elif item["type"] == "missing":
+            parts.append(f"missing key '{key}'")
+        else:
+            parts.append(f"'{key}': {item['msg']}")
+    return "; ".join(parts)
