@@ -151,13 +151,22 @@ def _same_bytes(a: Path, b: Path) -> bool:
                 return True
 
 
-def same_tree(a: Path, b: Path) -> bool:
-    """Whether directories ``a`` and ``b`` hold the same names, types and bytes."""
+def _plain_tree(root: Path) -> dict[str, tuple[int, int, str]] | None:
+    """``_tree(root)`` of a real directory (not a symlink); None for anything else, or when it
+    cannot be listed."""
     try:
-        if not (a.is_dir() and b.is_dir()) or a.is_symlink() or b.is_symlink():
-            return False
-        listing = _tree(a)
-        if listing != _tree(b):
+        if not root.is_dir() or root.is_symlink():
+            return None
+        return _tree(root)
+    except OSError:
+        return None
+
+
+def _same_tree(a: Path, listing: dict[str, tuple[int, int, str]], b: Path) -> bool:
+    """Whether directory ``b`` holds the same names, types and bytes as directory ``a``, whose
+    :func:`_plain_tree` is ``listing``."""
+    try:
+        if listing != _plain_tree(b):
             return False
         return all(
             _same_bytes(a / rel, b / rel)
@@ -349,14 +358,15 @@ class Store:
 
     # -- taking bundles ---------------------------------------------------------------------
 
-    def allocate(self, name: str) -> Allocation:
+    def allocate(self, name: str, *, find_duplicate: bool = True) -> Allocation:
         """The id for inbox entry ``name``: the name itself when it is a valid id not yet in use in
         archive/, failed/, outbox/ or in hand; else the first free ``<id>.2``, ``<id>.3``, ...
-        (contract section 3). Also reports a bundle, archived or in hand, that the upload is
-        byte-identical to (a repeated upload)."""
+        (contract section 3). With ``find_duplicate``, also reports a bundle, archived or in
+        hand, that the upload is byte-identical to (a repeated upload)."""
         entry = self.inbox / name
         base = name if is_valid_bundle_id(name) else sanitize_id(name)
         duplicate = None
+        listing = _plain_tree(entry) if find_duplicate else None  # listed once, compared often
         for n in count(1):
             candidate = base if n == 1 else suffixed(base, n)
             for place, label in (
@@ -364,7 +374,12 @@ class Store:
                 (self.taken, f"{self.inbox.name}/{TAKEN}"),
             ):
                 earlier = place / candidate
-                if duplicate is None and earlier.is_dir() and same_tree(entry, earlier):
+                if (
+                    duplicate is None
+                    and listing is not None
+                    and earlier.is_dir()
+                    and _same_tree(entry, listing, earlier)
+                ):
                     duplicate = f"{label}/{candidate}"
             if not self._in_use(candidate):
                 return Allocation(candidate, duplicate)

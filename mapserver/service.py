@@ -203,13 +203,12 @@ class Service:
         process: ProcessFn = process_taken_bundle,
         worker_setup: Callable[[], None] | None = None,
         stop_timeout: float = 60.0,
-        checkpoint: Callable[[str], None] | None = None,
     ) -> None:
         self._config = config
         self._process = process
         self._worker_setup = worker_setup
         self._stop_timeout = stop_timeout
-        self._checkpoint = checkpoint or env_checkpoint()
+        self._checkpoint = env_checkpoint()
         self._store = Store.from_config(config, checkpoint=self._checkpoint)
         self._workers = config.worker_count()
         self._tracker = StabilityTracker(
@@ -325,7 +324,7 @@ class Service:
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
-            self._heartbeat(observer)
+            self._heartbeat()
         log.info("stopping: no more bundles are taken")
         return 0
 
@@ -369,7 +368,10 @@ class Service:
     def _take(self, decision: Decision) -> None:
         name = decision.name
         try:
-            allocation = self._store.allocate(name)
+            # A rejected upload goes to failed/ whatever it repeats: no search for its twin.
+            allocation = self._store.allocate(
+                name, find_duplicate=not isinstance(decision, Rejected)
+            )
             bundle_id = allocation.bundle_id
             if isinstance(decision, Rejected):
                 self._reject(name, bundle_id, decision.stage, decision.reason)
@@ -609,14 +611,15 @@ class Service:
             f"{self._counts.failed} failed"
         )
 
-    def _heartbeat(self, observer: BaseObserver) -> None:
-        """WATCHDOG=1 (with STATUS) from the main loop, only while the observer and the workers
-        are alive: systemd restarts a daemon that hangs or has lost either."""
+    def _heartbeat(self) -> None:
+        """WATCHDOG=1 (with STATUS) from the main loop, only while the workers are alive (the
+        loop has exited already if the observer died): systemd restarts a daemon that hangs or
+        has lost either."""
         now = time.monotonic()
         if now - self._last_ping < self._ping_every:
             return
         self._last_ping = now
-        if _observer_alive(observer) and self._workers_alive():
+        if self._workers_alive():
             notify("WATCHDOG=1", self._status())
         else:
             notify(self._status())
