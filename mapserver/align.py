@@ -26,6 +26,8 @@ from mapserver.grid import Grid, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
+# nearest_wall_near's room for the points to move between requests, metres.
+_MOVE_ROOM_M = 0.5
 # cv2.calcHist counts in float32, exact up to 2**24 per call.
 _HIST_CHUNK = 1 << 24
 
@@ -36,12 +38,15 @@ class GlobalView:
 
     ``state`` is the global cell state and ``structure`` the walls used for alignment (occupied
     cells, plus walls a drawing shows in grey), both (grid.height, grid.width) on ``grid``
-    (nav2 frame).
+    (nav2 frame). ``wall_reach_m``: how far from its points any user of this view will look
+    for the nearest wall (the drift estimate looks farther than ICP), so that one nearest-wall
+    field serves them all.
     """
 
     grid: Grid
     state: NDArray[np.uint8]
     structure: NDArray[np.bool_]
+    wall_reach_m: float = 0.0
 
     def near_walls(self, tolerance_m: float) -> NDArray[np.bool_]:
         """Cells within ``tolerance_m`` of a global wall: ``distance * resolution <=
@@ -59,27 +64,25 @@ class GlobalView:
     def nearest_wall_near(self, points_xy: FloatArray, *, reach_m: float) -> NearestWall:
         """The (col, row) of the nearest global wall cell (a :class:`NearestWall`), computed
         only over the box that holds ``points_xy`` (nav2 metres) and ``reach_m`` around them
-        (the correspondences ICP and the drift estimate can use). Cached; a box outside the
-        cached one is computed again, as their union."""
-        k = math.ceil(reach_m / self.grid.resolution) + 2
+        (the correspondences ICP and the drift estimate can use), or the view's
+        ``wall_reach_m`` if farther. Cached; a box outside the cached one is computed again, as
+        their union."""
         px = self.grid.to_pixel(points_xy)
-        box = (
-            max(int(np.floor(px[:, 1].min())) - k, 0),
-            max(int(np.floor(px[:, 0].min())) - k, 0),
-            min(int(np.ceil(px[:, 1].max())) + k + 1, self.grid.height),
-            min(int(np.ceil(px[:, 0].max())) + k + 1, self.grid.width),
-        )
+        lo_r, lo_c = int(np.floor(px[:, 1].min())), int(np.floor(px[:, 0].min()))
+        hi_r, hi_c = int(np.ceil(px[:, 1].max())) + 1, int(np.ceil(px[:, 0].max())) + 1
+
+        def around(margin_m: float) -> tuple[int, int, int, int]:
+            k = math.ceil(margin_m / self.grid.resolution) + 2
+            h, w = self.grid.shape
+            return max(lo_r - k, 0), max(lo_c - k, 0), min(hi_r + k, h), min(hi_c + k, w)
+
+        reach = max(reach_m, self.wall_reach_m)
         cached: NearestWall | None = self.__dict__.get("_nearest_box")
-        if cached is not None and cached.covers(box):
+        if cached is not None and cached.covers(around(reach)):
             return cached
-        # Room to spare: the drift estimate asks next, for the same walls with a longer reach.
-        spare = math.ceil(2.5 / self.grid.resolution)
-        box = (
-            max(box[0] - spare, 0),
-            max(box[1] - spare, 0),
-            min(box[2] + spare, self.grid.height),
-            min(box[3] + spare, self.grid.width),
-        )
+        # A new field: with room for the points to move before the next request (ICP's
+        # candidates first, then the polished transform), so that one field serves them all.
+        box = around(reach + _MOVE_ROOM_M)
         if cached is not None:
             r0, c0 = cached._origin
             h, w = cached._labels.shape
@@ -97,6 +100,7 @@ class GlobalView:
             self.grid.crop(box),
             np.ascontiguousarray(self.state[r0:r1, c0:c1]),
             np.ascontiguousarray(self.structure[r0:r1, c0:c1]),
+            self.wall_reach_m,
         )
 
     def level(self, factor: int, pad: int) -> _Level:
@@ -184,8 +188,10 @@ def make_view(
     search_theta_rad: float = math.pi,
     margin_m: float = 1.0,
     pivot_slam: tuple[float, float] | None = None,
+    wall_reach_m: float = 0.0,
 ) -> GlobalView:
-    """Crop and resample the global map around where the prior puts the local map.
+    """Crop and resample the global map around where the prior puts the local map (a
+    :class:`GlobalView` with ``wall_reach_m``).
 
     The work resolution is the finer of the two maps' resolutions, so that neither map loses
     detail. Only the crop is touched, never the whole global map. The crop holds the local map
@@ -230,7 +236,7 @@ def make_view(
     c1, r1 = min(c1, global_map.width), min(r1, global_map.height)
     if c1 <= c0 or r1 <= r0:
         state = np.full(grid.shape, UNKNOWN, np.uint8)
-        return GlobalView(grid, state, np.zeros(grid.shape, bool))
+        return GlobalView(grid, state, np.zeros(grid.shape, bool), wall_reach_m)
     crop_grid = src.crop((r0, r1, c0, c1))
     crop = OccupancyMap(
         global_map.state[r0:r1, c0:c1],
@@ -241,7 +247,7 @@ def make_view(
     state = resample(crop.state, crop_grid, grid)
     structure_u8 = structure_mask(crop).astype(np.uint8)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
-    return GlobalView(grid, state, structure)
+    return GlobalView(grid, state, structure, wall_reach_m)
 
 
 # --- scoring ---------------------------------------------------------------------------------

@@ -236,6 +236,9 @@ def process_bundle(
     # Around where the local map lands, the views keep room for the differences' reach and the
     # images' margin.
     margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
+    # How far the drift estimate looks for a wall's counterpart: the views' nearest-wall
+    # fields are built that wide from the start, for ICP and the drift estimate alike.
+    drift_reach_m = 2 * settings.align.deform_max_shift_m + 0.5 if settings.align.deform else 0.0
 
     def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
         robot = files.manifest.pose.slam.to_pose()
@@ -254,6 +257,7 @@ def process_bundle(
                     # Room for the images' margin around where the local map lands.
                     margin_m=margin_m,
                     pivot_slam=pivot,
+                    wall_reach_m=drift_reach_m,
                 )
             )
             return views[-1]
@@ -291,9 +295,7 @@ def process_bundle(
             walls = align_stage.thin_points(
                 align_stage.known_points(local, state=OCCUPIED), spacing
             )
-            nearest = view.nearest_wall_near(
-                transform.apply(walls), reach_m=2 * a.deform_max_shift_m + 0.5
-            )
+            nearest = view.nearest_wall_near(transform.apply(walls), reach_m=drift_reach_m)
             # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
             fields: list[deform.DriftField] = []
             for tile_m, max_shift_m in _drift_passes(
