@@ -20,7 +20,6 @@ bundle folders in ``--template``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import random
 import shutil
@@ -35,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
+
+from mapserver.bundle import sha256_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "mapserver" / "data" / "samples"
@@ -56,9 +57,7 @@ class Run:
 
 def digest(path: Path) -> dict[str, str]:
     return {
-        str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(path.rglob("*"))
-        if p.is_file()
+        str(p.relative_to(path)): sha256_file(p) for p in sorted(path.rglob("*")) if p.is_file()
     }
 
 
@@ -117,7 +116,10 @@ class Daemon:
 
 
 def count_results(outbox: Path) -> int:
-    return sum(1 for _ in outbox.glob("*/result.yaml"))
+    # A result folder appears whole (renamed in, result.yaml written last): one directory
+    # read, not a glob of every folder (this loop shares the cores with the daemon).
+    with os.scandir(outbox) as entries:
+        return sum(1 for e in entries if not e.name.startswith("."))
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -163,7 +165,7 @@ def main() -> int:
     run = Run(
         [Upload(f"bench-{i:03d}", templates[i % len(templates)]) for i in range(args.bundles)]
     )
-    expected = {u.source: digest(u.source) for u in run.uploads}
+    expected = {t: digest(t) for t in templates}
     log = work / "daemon.log"
     print(f"work folder {work}; {args.bundles} bundles from {len(templates)} templates")
 
@@ -207,7 +209,7 @@ def main() -> int:
         thread.join()
     ids = {u.bundle_id for u in run.uploads}
     deadline = time.monotonic() + 600
-    while not all((outbox / i / "result.yaml").exists() or (failed / i).exists() for i in ids):
+    while count_results(outbox) + sum(1 for p in failed.iterdir() if p.name in ids) < len(ids):
         if daemon.process.poll() is not None or time.monotonic() > deadline:
             raise SystemExit(f"not every bundle finished; see {log}")
         time.sleep(0.05)

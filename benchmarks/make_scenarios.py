@@ -589,33 +589,20 @@ def build_maps(
 def _walker_changes(
     world: OccupancyMap,
     true_state: NDArray[np.uint8],
-    route: Sequence[Pose2D],
-    rng_before_session: dict[str, Any],
     session: synth.Session,
-    options: Params,
     first_id: int,
 ) -> list[tuple[synth.Change, int]]:
     """Temporary changes for the people who walked past while the robot scanned.
 
-    ``synth.simulate_session`` draws its walkers with ``synth._walkers`` right after two draws for
-    the drift signs; replaying that on a copy of its generator gives the same walkers. Each one
-    becomes the area its disc swept at the scan times when it was about (plus 5 cm); it is
-    ``observed`` when at least 5 occupied local cells, mapped by the true transform, fall on that
-    area more than 3 local cells from anything solid in the true world (nearer, they are the
-    wall's own noise). Returns ``(change, seen_cells)`` pairs.
+    Each of the session's walkers becomes the area its disc swept at the scan times when it was
+    about (plus 5 cm); it is ``observed`` when at least 5 occupied local cells, mapped by the
+    true transform, fall on that area more than 3 local cells from anything solid in the true
+    world (nearer, they are the wall's own noise). Returns ``(change, seen_cells)`` pairs.
     """
-    count = int(options.get("walkers", 0))
-    if count == 0:
+    walkers = session.walkers
+    if not walkers:
         return []
-    rng = np.random.Generator(np.random.PCG64())
-    rng.bit_generator.state = rng_before_session
-    rng.random()
-    rng.random()
-    true_xy = np.array([(p.x, p.y) for p in route], float)
-    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(true_xy, axis=0).T))])
-    times = travelled / float(options.get("robot_speed_mps", 0.5))
-    walkers = synth._walkers(world, true_state, true_xy, times, count, rng)
-    t_scan = times[np.array(session.scan_indices)]
+    t_scan = np.array(session.scan_times)
 
     local = session.slam_map
     rows, cols = np.nonzero(local.state == OCCUPIED)
@@ -783,7 +770,6 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
         rng=rng,
         clearance_m=0.4,
     )
-    rng_before_session = rng.bit_generator.state
     session = synth.simulate_session(
         world,
         route,
@@ -796,9 +782,7 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
     )
     seen = {c.id: _seen_cells(c, session) for c in changes}
     changes = tuple(replace(c, observed=seen[c.id] >= 5) for c in changes)
-    walkers = _walker_changes(
-        world, true_state, route, rng_before_session, session, plan.session, len(changes) + 1
-    )
+    walkers = _walker_changes(world, true_state, session, len(changes) + 1)
     for change, cells in walkers:
         seen[change.id] = cells
     all_changes = changes + tuple(c for c, _ in walkers)

@@ -28,14 +28,14 @@ from mapserver.synth.scenario import (
     make_scenario,
     thin_trajectory,
 )
-from mapserver.synth.session import DriftReport, Session, simulate_session
-from mapserver.synth.session import _walkers as _walkers  # benchmarks/make_scenarios.py
+from mapserver.synth.session import DriftReport, Session, Walker, simulate_session
 
 __all__ = [
     "Change",
     "DriftReport",
     "Session",
     "SyntheticBundle",
+    "Walker",
     "bundle_from_session",
     "make_airport_map",
     "make_office_map",

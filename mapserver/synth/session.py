@@ -74,6 +74,10 @@ class Session:
         Counted through the simulation itself, so drift does not blur it.
     drift
         How much the estimate drifted.
+    walkers
+        The people who walked near the route during the session (not in the true world).
+    scan_times
+        Seconds since the start at each scan (the ``scan_indices`` poses).
     """
 
     slam_map: OccupancyMap
@@ -86,6 +90,8 @@ class Session:
     scan_indices: tuple[int, ...]
     seen_cells: Mapping[int, int]
     drift: DriftReport
+    walkers: tuple[Walker, ...] = ()
+    scan_times: tuple[float, ...] = ()
 
 
 def _cast(
@@ -194,7 +200,7 @@ def _fit_rigid(src: NDArray[np.float64], dst: NDArray[np.float64]) -> Transform2
 
 
 @dataclass(frozen=True)
-class _Walker:
+class Walker:
     path: NDArray[np.float64]  # (M, 2) nav2 metres
     arc: NDArray[np.float64]  # (M,) metres along the path
     speed_mps: float
@@ -209,14 +215,14 @@ class _Walker:
         )
 
 
-def _walkers(
+def _draw_walkers(
     world: OccupancyMap,
     state: NDArray[np.uint8],
     route_xy: NDArray[np.float64],
     times: NDArray[np.float64],
     count: int,
     rng: np.random.Generator,
-) -> list[_Walker]:
+) -> list[Walker]:
     """People walking near the route at some time of the session, each for 6-20 s."""
     if count == 0:
         return []
@@ -242,7 +248,7 @@ def _walkers(
             _explore(grid, (int(start[0]), int(start[1])), speed * duration, rng, hop_m=(2.0, 10.0))
         )
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
-        out.append(_Walker(path, arc, speed, t_start, t_start + duration, radius))
+        out.append(Walker(path, arc, speed, t_start, t_start + duration, radius))
     return out
 
 
@@ -393,8 +399,9 @@ def simulate_session(
     world_hit = kind == 1
 
     # Walkers return the beams that reach them first.
-    for walker in _walkers(world, state, true[:, :2], times, walkers, rng):
-        t_scan = times[scans]
+    people = tuple(_draw_walkers(world, state, true[:, :2], times, walkers, rng))
+    t_scan = times[scans]
+    for walker in people:
         pos = walker.position(t_scan)[scan_of_ray]
         active = ((t_scan >= walker.t_start) & (t_scan <= walker.t_end))[scan_of_ray]
         fx, fy = true[pose_of_ray, 0] - pos[:, 0], true[pose_of_ray, 1] - pos[:, 1]
@@ -564,4 +571,6 @@ def simulate_session(
         scan_indices=tuple(int(i) for i in scans),
         seen_cells=seen,
         drift=drift,
+        walkers=people,
+        scan_times=tuple(float(t) for t in times[scans]),
     )
