@@ -83,6 +83,7 @@ from mapserver import synth
 from mapserver.bundle import sha256_file
 from mapserver.geometry import Pose2D, Transform2D, wrap_angle
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states, load_map, save_map
+from mapserver.scoring import alignment_error, observed_centroid_xy
 
 MAPS_DIR = Path("/work/shared/maps")
 
@@ -812,9 +813,8 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
     d = session.drift
     prior = Transform2D.from_poses(session.pose_nav2, session.pose_slam)
     truth = session.nav2_from_slam
-    rows, cols = np.nonzero(session.slam_map.state != UNKNOWN)
-    centre = np.array(session.slam_map.pixel_to_world(cols, rows)).mean(axis=1)
-    prior_error_m = float(np.hypot(*(prior.apply(centre) - truth.apply(centre))))
+    centre = observed_centroid_xy(session.slam_map)
+    prior_error_m, prior_error_rad = alignment_error(prior, truth, centre)
     xy = np.array([(p.x, p.y) for p in route])
     bundle_doc = {
         "id": bundle_id,
@@ -826,7 +826,7 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
         "global_resolution": global_map.map.resolution,
         "prior_error": {
             "at_centre_m": round(prior_error_m, 4),
-            "deg": round(math.degrees(abs(wrap_angle(prior.theta - truth.theta))), 3),
+            "deg": round(math.degrees(prior_error_rad), 3),
         },
         "drift": {
             "scale_factor": round(d.scale_factor, 6),
