@@ -32,7 +32,7 @@ Choices where section 4 is silent, made once here:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -222,9 +222,30 @@ def _field(doc: Mapping[str, Any], key: str, where: str) -> Any:
     return doc[key]
 
 
-def _transform(value: Any, where: str) -> Transform2D:
+def _numbers(value: Any, where: str, keys: tuple[str, ...]) -> tuple[float, ...]:
+    """The finite numbers under ``keys`` of mapping ``value`` (found at ``where``)."""
     doc = _mapping(value, where)
-    theta, tx, ty = (_number(_field(doc, k, where), f"{where}.{k}") for k in ("theta", "tx", "ty"))
+    return tuple(_number(_field(doc, k, where), f"{where}.{k}") for k in keys)
+
+
+def _kinded_items(
+    raw: Any, where: str, kinds: tuple[str, ...]
+) -> Iterator[tuple[int, str, Mapping[str, Any], str]]:
+    """``(index, where, item, kind)`` of each mapping of list ``raw``, whose ``kind`` must be
+    one of ``kinds``."""
+    if not isinstance(raw, list):
+        raise ValueError(f"{where} must be a list")
+    for i, value in enumerate(raw):
+        at = f"{where}[{i}]"
+        item = _mapping(value, at)
+        kind = _field(item, "kind", at)
+        if kind not in kinds:
+            raise ValueError(f"{at}.kind must be one of {kinds}, got {kind!r}")
+        yield i, at, item, kind
+
+
+def _transform(value: Any, where: str) -> Transform2D:
+    theta, tx, ty = _numbers(value, where, ("theta", "tx", "ty"))
     return Transform2D(theta, tx, ty)
 
 
@@ -242,16 +263,10 @@ def parse_truth(doc: Any) -> Truth:
     doc = _mapping(doc, "truth")
     _check_format(doc, "truth")
     transform = _transform(_field(doc, "transform", "truth"), "truth.transform")
-    raw_changes = doc.get("changes") or []
-    if not isinstance(raw_changes, list):
-        raise ValueError("truth.changes must be a list")
     changes = []
-    for i, raw in enumerate(raw_changes):
-        where = f"truth.changes[{i}]"
-        item = _mapping(raw, where)
-        kind = _field(item, "kind", where)
-        if kind not in CHANGE_KINDS:
-            raise ValueError(f"{where}.kind must be one of {CHANGE_KINDS}, got {kind!r}")
+    for i, where, item, kind in _kinded_items(
+        doc.get("changes") or [], "truth.changes", CHANGE_KINDS
+    ):
         try:
             polygon = np.array(_field(item, "polygon", where), dtype=float)
         except (TypeError, ValueError):
@@ -286,25 +301,14 @@ def parse_result(doc: Any) -> Result:
     }
     if status != "ok":
         return Result(status, timings_ms=timings)
-    raw_diffs = _field(doc, "differences", "result") or []
-    if not isinstance(raw_diffs, list):
-        raise ValueError("result.differences must be a list")
     differences = []
-    for i, raw in enumerate(raw_diffs):
-        where = f"result.differences[{i}]"
-        item = _mapping(raw, where)
-        kind = _field(item, "kind", where)
-        if kind not in STRUCTURAL_KINDS:
-            raise ValueError(f"{where}.kind must be one of {STRUCTURAL_KINDS}, got {kind!r}")
-        c = _mapping(_field(item, "centroid", where), f"{where}.centroid")
-        centroid = (
-            _number(_field(c, "x", f"{where}.centroid"), f"{where}.centroid.x"),
-            _number(_field(c, "y", f"{where}.centroid"), f"{where}.centroid.y"),
-        )
-        b = _mapping(_field(item, "bbox", where), f"{where}.bbox")
-        min_x, min_y, max_x, max_y = (
-            _number(_field(b, k, f"{where}.bbox"), f"{where}.bbox.{k}")
-            for k in ("min_x", "min_y", "max_x", "max_y")
+    for i, where, item, kind in _kinded_items(
+        _field(doc, "differences", "result") or [], "result.differences", STRUCTURAL_KINDS
+    ):
+        x, y = _numbers(_field(item, "centroid", where), f"{where}.centroid", ("x", "y"))
+        centroid = (x, y)
+        min_x, min_y, max_x, max_y = _numbers(
+            _field(item, "bbox", where), f"{where}.bbox", ("min_x", "min_y", "max_x", "max_y")
         )
         bbox = (min_x, min_y, max_x, max_y)
         if bbox[0] > bbox[2] or bbox[1] > bbox[3]:
