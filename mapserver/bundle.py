@@ -166,7 +166,7 @@ def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path
     root = bundle_dir.resolve()
     candidate = bundle_dir / name
     resolved = candidate.resolve()
-    if resolved != root and root not in resolved.parents:
+    if not resolved.is_relative_to(root):
         raise BundleError(f"{what} '{name}' points outside the bundle", file=source)
     return candidate
 

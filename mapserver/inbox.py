@@ -159,7 +159,7 @@ def check_entry(path: Path) -> BundleFiles:
                 resolved = item.resolve()
             except RuntimeError:  # Python 3.11 on a loop; 3.13 raises OSError (ELOOP)
                 raise BundleError("symbolic link loop", file=rel) from None
-            if os.path.isabs(target) or (resolved != root and root not in resolved.parents):
+            if os.path.isabs(target) or not resolved.is_relative_to(root):
                 raise BundleError(
                     f"symbolic link to '{target}' points outside the bundle", file=rel
                 )

@@ -64,13 +64,10 @@ class MapCache:
                 self.hits += 1
         if cached is not None:
             # Same content, another bundle: check the size limit and the paths as for a fresh load.
-            if cached.width * cached.height > max_pixels:
+            # Anything wrong: the loader reports it with its own, precise message.
+            too_big = cached.width * cached.height > max_pixels
+            if too_big or not _inside(confine_to, yaml_path, image_path):
                 return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
-            if confine_to is not None:
-                root = Path(confine_to).resolve()
-                for p in (Path(yaml_path), Path(image_path)):
-                    if root not in p.resolve().parents:
-                        return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
             return _renamed(cached, Path(yaml_path), Path(image_path))
         loaded = load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
         loaded.state.flags.writeable = False
@@ -86,6 +83,17 @@ class MapCache:
     def clear(self) -> None:
         with self._lock:
             self._maps.clear()
+
+
+def _inside(root: Path | None, *paths: Path) -> bool:
+    """Whether every path resolves inside ``root`` (no root: yes; unresolvable: no)."""
+    if root is None:
+        return True
+    try:
+        top = Path(root).resolve()
+        return all(Path(p).resolve().is_relative_to(top) for p in paths)
+    except (OSError, RuntimeError):  # RuntimeError: a symlink loop before Python 3.13
+        return False
 
 
 def _renamed(m: OccupancyMap, yaml_path: Path, image_path: Path) -> OccupancyMap:
