@@ -486,12 +486,20 @@ def grey_image(
 
 @dataclass(frozen=True, eq=False)
 class GlobalMap:
-    """The global map of a bundle: its states (for the record) and how to write its files."""
+    """The global map of a bundle: its size (for the record) and how to write its files."""
 
-    map: OccupancyMap
+    width: int
+    height: int
+    resolution: float
     write: Callable[[Path], list[str]]  # writes the files into a directory, returns their names
     yaml_name: str
     source: str
+
+    @staticmethod
+    def of(
+        m: OccupancyMap, write: Callable[[Path], list[str]], yaml_name: str, source: str
+    ) -> GlobalMap:
+        return GlobalMap(m.width, m.height, m.resolution, write, yaml_name, source)
 
 
 def _trinary_writer(m: OccupancyMap) -> Callable[[Path], list[str]]:
@@ -544,7 +552,7 @@ def build_maps(
         original = _load_real(path)
         world = lidar_world(original)
         if spec.global_res_m is None:
-            return world, GlobalMap(original, _copy_writer(path), path.name, str(path))
+            return world, GlobalMap.of(original, _copy_writer(path), path.name, str(path))
         base = from_states(original.state, original.resolution, world.origin)
     else:
         world = _draw_world(spec, rng)
@@ -556,7 +564,7 @@ def build_maps(
         )
     source = str(path) if path is not None else f"(generated {spec.kind})"
     if spec.global_res_m is None:
-        return world, GlobalMap(base, _trinary_writer(base), "nav2_map.yaml", source)
+        return world, GlobalMap.of(base, _trinary_writer(base), "nav2_map.yaml", source)
     k = round(spec.global_res_m / base.resolution)
     if k < 2 or abs(k * base.resolution - spec.global_res_m) > 1e-6:
         raise ValueError(
@@ -567,19 +575,16 @@ def build_maps(
     res = spec.global_res_m
     if spec.grey:
         pixels = grey_image(occ, unk, ink=spec.ink, blur_px=spec.blur_px)
-        p = (255 - pixels.astype(int)) / 255.0
-        state = np.full(pixels.shape, UNKNOWN, np.uint8)
-        state[p < 0.196] = FREE
-        state[p > 0.65] = OCCUPIED
-        g = from_states(state, res, base.origin)
-        return world, GlobalMap(g, _grey_writer(pixels, res, base.origin), "nav2_map.yaml", source)
+        h, w = pixels.shape
+        writer = _grey_writer(pixels, res, base.origin)
+        return world, GlobalMap(w, h, res, writer, "nav2_map.yaml", source)
     # A coarse SLAM map: a cell with any wall in it gets the hits, so it is occupied (a 2 cm wall
     # stays a wall at 10 cm); a cell mostly outside what was seen is unknown.
     state = np.full(occ.shape, FREE, np.uint8)
     state[unk > 0.5] = UNKNOWN
     state[occ > 0] = OCCUPIED
     g = from_states(state, res, base.origin)
-    return world, GlobalMap(g, _trinary_writer(g), "nav2_map.yaml", source)
+    return world, GlobalMap.of(g, _trinary_writer(g), "nav2_map.yaml", source)
 
 
 # --------------------------------------------------------------------------------------------
@@ -822,8 +827,8 @@ def build_scenario(plan: Plan, out_dir: Path) -> Params:
         "poses": len(route),
         "local_map_px": [session.slam_map.width, session.slam_map.height],
         "local_resolution": session.slam_map.resolution,
-        "global_map_px": [global_map.map.width, global_map.map.height],
-        "global_resolution": global_map.map.resolution,
+        "global_map_px": [global_map.width, global_map.height],
+        "global_resolution": global_map.resolution,
         "prior_error": {
             "at_centre_m": round(prior_error_m, 4),
             "deg": round(math.degrees(prior_error_rad), 3),
