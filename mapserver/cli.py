@@ -21,8 +21,9 @@ from typing import Any
 
 import yaml
 
-from mapserver.config import dump_config, load_config
+from mapserver.config import Config, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
+from mapserver.lock import AlreadyRunning, daemon_pid
 
 log = logging.getLogger("mapserver")
 
@@ -48,6 +49,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     _setup_logging(config.log_level)
     outbox = Path(args.outbox).resolve() if args.outbox else config.outbox
+    _refuse_a_daemons_outbox(config, outbox)
     failures = 0
     for bundle in args.bundles:
         bundle_dir = Path(bundle)
@@ -63,6 +65,20 @@ def _cmd_process(args: argparse.Namespace) -> int:
         n = len(outcome.result.get("differences", []))
         sys.stdout.write(f"{outcome.bundle_id}: {n} differences -> {final / 'result.yaml'}\n")
     return 1 if failures else 0
+
+
+def _refuse_a_daemons_outbox(config: Config, outbox: Path) -> None:
+    """A running daemon is the only writer of its outbox: a result written beside it would
+    replace one of its results, or take an id it is about to give."""
+    if outbox != config.outbox:
+        return
+    pid = daemon_pid(config)
+    if pid is not None:
+        raise MapserverError(
+            f"{AlreadyRunning(pid, config.inbox).reason}, and {outbox} is its outbox; "
+            "write these results elsewhere with --outbox DIR",
+            stage="process",
+        )
 
 
 # -- mapserver run ---------------------------------------------------------------------------

@@ -35,6 +35,7 @@ from watchdog.observers.polling import PollingObserver
 from mapserver.config import Config
 from mapserver.errors import MapserverError
 from mapserver.inbox import EVENT_TYPES, Decision, InboxHandler, Rejected, StabilityTracker, scan
+from mapserver.lock import daemon_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store
 
@@ -251,13 +252,18 @@ class Service:
         self.request_stop()
 
     def run(self) -> int:
-        """Run until stopped; 0 after a requested stop, 1 when the inbox cannot be watched."""
+        """Run until stopped; 0 after a requested stop, 1 when the inbox cannot be watched.
+
+        Raises :class:`~mapserver.lock.AlreadyRunning` at once when another daemon serves the
+        same inbox (nothing is touched then).
+        """
         previous: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGTERM, signal.SIGINT):
                 previous[signum] = signal.signal(signum, self._on_signal)
         try:
-            return self._run()
+            with daemon_lock(self._config):
+                return self._run()
         finally:
             for number, handler in previous.items():
                 signal.signal(number, handler)

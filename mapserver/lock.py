@@ -1,0 +1,127 @@
+"""One daemon per inbox: ``mapserver run`` holds an exclusive ``flock`` on ``inbox/.mapserver.lock``.
+
+A flock belongs to the open file, and the kernel drops it when the process ends, whatever the
+way (kill -9 and power loss included): a restart needs no manual step, and a pid left in the file
+by a dead daemon means nothing. The file holds the pid of the daemon that holds the lock, for the
+messages and ``mapserver status``. It is never deleted: a daemon that unlinked it could race a
+second one that had opened it a moment before, and each would then lock a different file.
+
+The name starts with a dot, so the daemon never reads it as an upload (contract section 2), and
+it lives in the inbox, the one folder every daemon on these folders must watch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from mapserver.errors import ConfigError, MapserverError
+
+if TYPE_CHECKING:
+    from mapserver.config import Config
+
+LOCK_NAME = ".mapserver.lock"
+
+# A reader (daemon_pid) holds a shared lock for a few microseconds; a daemon starting at that
+# moment tries again for this long before it concludes that another daemon runs.
+_ACQUIRE_FOR_S = 0.3
+# A daemon writes its pid right after it takes the lock; a reader waits this long for it.
+_PID_WAIT_S = 0.5
+
+
+class AlreadyRunning(MapserverError):
+    """Another daemon holds the inbox's lock."""
+
+    default_stage = "run"
+
+    def __init__(self, pid: int | None, inbox: Path) -> None:
+        self.pid = pid
+        self.inbox = inbox
+        shown = str(pid) if pid else "unknown"
+        super().__init__(f"another mapserver (pid {shown}) is running on {inbox}")
+
+
+def lock_path(config: Config) -> Path:
+    """The lock file of the daemon that serves ``config``'s folders."""
+    return config.inbox / LOCK_NAME
+
+
+def daemon_pid(config: Config) -> int | None:
+    """The pid of the ``mapserver run`` that serves ``config``'s inbox, or None when none does
+    (test it with ``is None``: it is 0 for a daemon that has taken the lock this very moment and
+    not yet written its pid).
+
+    Raises :class:`~mapserver.errors.MapserverError` when the lock file cannot be read (no
+    permission): "not running" would then be a guess.
+    """
+    path = lock_path(config)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        raise MapserverError(
+            f"cannot read the daemon's lock file: {error.strerror}", file=path, stage="status"
+        ) from None
+    try:
+        if _try_lock(fd, fcntl.LOCK_SH):
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        return _read_pid(fd) or 0
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def daemon_lock(config: Config) -> Iterator[Path]:
+    """Hold the lock of ``config``'s inbox (created if missing) for the ``with`` block.
+
+    Raises :class:`AlreadyRunning` at once when another process holds it.
+    """
+    path = lock_path(config)
+    try:
+        config.inbox.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o664)
+    except OSError as error:
+        raise ConfigError(
+            f"cannot open the daemon's lock file: {error.strerror}", file=path
+        ) from None
+    try:
+        deadline = time.monotonic() + _ACQUIRE_FOR_S
+        while not _try_lock(fd, fcntl.LOCK_EX):
+            if time.monotonic() >= deadline:
+                raise AlreadyRunning(_read_pid(fd), config.inbox)
+            time.sleep(0.01)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _try_lock(fd: int, kind: int) -> bool:
+    try:
+        fcntl.flock(fd, kind | fcntl.LOCK_NB)
+    except OSError as error:
+        if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+            return False
+        raise
+    return True
+
+
+def _read_pid(fd: int) -> int | None:
+    """The pid in the lock file; waits a moment for a daemon that has just taken the lock."""
+    deadline = time.monotonic() + _PID_WAIT_S
+    while True:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        if text.isdigit():
+            return int(text)
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.01)
