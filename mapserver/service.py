@@ -229,6 +229,7 @@ class Service:
         self.ready = threading.Event()
         """Set once the start-up scan is done (when systemd gets READY=1)."""
         self._next_rescan = 0.0
+        self._inbox_id: tuple[int, int] | None = None
         self._last_ping = float("-inf")
         period = watchdog_period()
         self._ping_every = min(1.0, period / 3) if period else 1.0
@@ -271,6 +272,7 @@ class Service:
     def _run(self) -> int:
         config = self._config
         self._store.prepare()
+        self._inbox_id = _identity(config.inbox)
         now = time.monotonic()
         recovered = self._store.recover()
         self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
@@ -329,6 +331,12 @@ class Service:
             self._dispatch()
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
+                return 1
+            # Looked at here, not left to the observer: the lock file held open inside the inbox
+            # keeps the kernel from reporting the inbox's removal (IN_DELETE_SELF) while it is
+            # open, and a replaced inbox is never reported at all.
+            if _identity(self._config.inbox) != self._inbox_id:
+                log.error("inbox: %s was removed or replaced; exiting", self._config.inbox)
                 return 1
             self._heartbeat()
         log.info("stopping: no more bundles are taken")
@@ -661,6 +669,15 @@ def _guarded(bundle_id: str, handle: Callable[..., None], *args: Any) -> None:
         handle(*args)
     except Exception:
         log.exception("%s: internal error while handling it; left where it is", bundle_id)
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of ``path``, None when it is gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
 
 
 def _observer_alive(observer: BaseObserver) -> bool:
