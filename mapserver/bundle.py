@@ -24,6 +24,7 @@ from pydantic import (
     model_validator,
 )
 
+from mapserver.config import LimitsConfig
 from mapserver.errors import BundleError, BundleIncomplete, describe_validation
 from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
 
@@ -31,6 +32,7 @@ MANIFEST = "bundle.yaml"
 # libyaml's loader when PyYAML was built with it: a manifest with a long trajectory parses
 # about ten times faster. Same safe subset of YAML either way.
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_LIMITS = LimitsConfig()
 BUNDLE_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
@@ -132,8 +134,11 @@ class Manifest(_Model):
         return [p.to_pose() for p in self.trajectory or []]
 
 
-def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
-    """Parse and validate the text of ``bundle.yaml``; errors name the field."""
+def parse_manifest(
+    text: str, *, source: str | Path = MANIFEST, limits: LimitsConfig = _LIMITS
+) -> Manifest:
+    """Parse and validate the text of ``bundle.yaml``; errors name the field. A trajectory
+    longer than ``limits.max_trajectory_poses`` is refused before its poses are validated."""
     try:
         data = yaml.load(text, Loader=_LOADER)
     except yaml.YAMLError as error:
@@ -141,21 +146,37 @@ def parse_manifest(text: str, *, source: str | Path = MANIFEST) -> Manifest:
         raise BundleError(f"not valid YAML: {problem}", file=source) from None
     if not isinstance(data, dict):
         raise BundleError("the manifest must be a mapping of keys to values", file=source)
+    trajectory = data.get("trajectory")
+    if isinstance(trajectory, list) and len(trajectory) > limits.max_trajectory_poses:
+        raise BundleError(
+            f"the trajectory has {len(trajectory)} poses, more than limits.max_trajectory_poses "
+            f"{limits.max_trajectory_poses}: send fewer (one pose every 10-20 cm is plenty)",
+            file=source,
+        )
     try:
         return Manifest.model_validate(data)
     except ValidationError as error:
         raise BundleError(describe_validation(error), file=source) from None
 
 
-def read_manifest(bundle_dir: Path) -> Manifest:
+def read_manifest(bundle_dir: Path, *, limits: LimitsConfig = _LIMITS) -> Manifest:
+    """Read and parse ``bundle.yaml``; one larger than ``limits.max_manifest_bytes`` is refused
+    before it is read."""
     path = bundle_dir / MANIFEST
     try:
+        size = path.stat().st_size
+        if size > limits.max_manifest_bytes:
+            raise BundleError(
+                f"the manifest is {size} bytes, more than limits.max_manifest_bytes "
+                f"{limits.max_manifest_bytes}",
+                file=path,
+            )
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise BundleIncomplete("no bundle.yaml yet", file=path) from None
     except (OSError, UnicodeDecodeError) as error:
         raise BundleError(f"cannot read the manifest: {error}", file=path) from None
-    return parse_manifest(text, source=path)
+    return parse_manifest(text, source=path, limits=limits)
 
 
 def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path:
@@ -209,7 +230,9 @@ class BundleFiles:
         return out
 
 
-def check_bundle_files(bundle_dir: Path, *, verify_checksums: bool = True) -> BundleFiles:
+def check_bundle_files(
+    bundle_dir: Path, *, verify_checksums: bool = True, limits: LimitsConfig = _LIMITS
+) -> BundleFiles:
     """Check that the manifest parses, every file it names is present and every listed checksum
     matches (with ``verify_checksums=False``: that every checksummed file is present, for a
     bundle whose checksums were verified already).
@@ -218,7 +241,7 @@ def check_bundle_files(bundle_dir: Path, *, verify_checksums: bool = True) -> Bu
     upload may still be going on) and :class:`BundleError` for a bundle that can never be right.
     The settle time (nothing changed for a while) is the caller's business.
     """
-    manifest = read_manifest(bundle_dir)
+    manifest = read_manifest(bundle_dir, limits=limits)
     source = bundle_dir / MANIFEST
     yamls: dict[str, Path | None] = {"slam": None, "nav2": None}
     images: dict[str, Path | None] = {"slam": None, "nav2": None}

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from mapserver.errors import ConfigError, describe_validation
 
@@ -102,6 +102,33 @@ class RenderConfig(_Frozen):
     """Images are scaled down to at most this many pixels on a side."""
 
 
+class LimitsConfig(_Frozen):
+    """Sanity limits on a bundle's inputs, checked before any heavy work: a bundle past one is
+    refused with the limit named, not processed for minutes or until it runs out of memory."""
+
+    min_resolution_m: float = Field(0.005, gt=0)
+    """Map cells smaller than this (metres per cell) are refused; 0.005 m is finer than any
+    lidar SLAM map."""
+    max_resolution_m: float = Field(1.0, gt=0)
+    """Map cells larger than this are refused; a 1 m cell cannot hold an indoor obstacle."""
+    max_map_extent_m: float = Field(2000.0, gt=0)
+    """A map wider or taller than this (metres) is refused, from its image header."""
+    max_trajectory_poses: int = Field(100_000, ge=0)
+    """A longer ``trajectory`` in bundle.yaml is refused (one pose every 10 cm over 10 km)."""
+    max_manifest_bytes: int = Field(16 * 2**20, gt=0)
+    """A larger bundle.yaml is refused before it is parsed."""
+
+    @model_validator(mode="after")
+    def _ordered(self) -> LimitsConfig:
+        if self.min_resolution_m > self.max_resolution_m:
+            raise ValueError("min_resolution_m must not be larger than max_resolution_m")
+        return self
+
+    @property
+    def resolution_range_m(self) -> tuple[float, float]:
+        return (self.min_resolution_m, self.max_resolution_m)
+
+
 class PipelineConfig(_Frozen):
     align: AlignConfig = AlignConfig()
     roi: RoiConfig = RoiConfig()
@@ -123,6 +150,7 @@ class Config(_Frozen):
     workers: int = Field(0, ge=0)
     observer: Literal["native", "polling"] = "native"
     max_image_pixels: int = Field(100_000_000, gt=0)
+    limits: LimitsConfig = LimitsConfig()
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     pipeline: PipelineConfig = PipelineConfig()
 

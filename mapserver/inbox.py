@@ -40,9 +40,11 @@ from watchdog.events import (
 )
 
 from mapserver.bundle import BundleFiles, check_bundle_files, is_in_flight, is_valid_bundle_id
+from mapserver.config import LimitsConfig
 from mapserver.errors import BundleError, BundleIncomplete
 
 log = logging.getLogger(__name__)
+_LIMITS = LimitsConfig()
 
 # Not FileOpenedEvent / FileClosedNoWriteEvent: reading a bundle (the completeness check, the
 # workers) would otherwise wake the daemon for nothing.
@@ -132,7 +134,7 @@ def _walk(root: Path) -> Iterator[Path]:
             yield Path(dirpath) / name
 
 
-def check_entry(path: Path) -> BundleFiles:
+def check_entry(path: Path, *, limits: LimitsConfig = _LIMITS) -> BundleFiles:
     """Contract section 2 for inbox entry ``path``, plus what makes an entry unsafe to read.
 
     Raises :class:`BundleIncomplete` while the upload may still be going on and
@@ -166,7 +168,7 @@ def check_entry(path: Path) -> BundleFiles:
             mode = resolved.stat().st_mode if resolved.exists() else stat.S_IFREG
         if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
             raise BundleError("not a regular file or directory", file=rel)
-    return check_bundle_files(path)
+    return check_bundle_files(path, limits=limits)
 
 
 @dataclass(frozen=True)

@@ -42,20 +42,33 @@ class MapCache:
         max_pixels: int,
         confine_to: Path | None = None,
         image_sha256: str | None = None,
+        resolution_range_m: tuple[float, float] | None = None,
+        max_extent_m: float | None = None,
     ) -> OccupancyMap:
         """The map of ``yaml_path``, decoded now or taken from the cache.
 
         ``image_path`` is the image the YAML names (already resolved by the caller), used only
         for the key; ``image_sha256`` saves hashing it when it is already known to be right.
+        The limits are :func:`~mapserver.maps.load_map`'s, checked on a cached map too.
         """
+
+        def load() -> OccupancyMap:
+            return load_map(
+                yaml_path,
+                max_pixels=max_pixels,
+                confine_to=confine_to,
+                resolution_range_m=resolution_range_m,
+                max_extent_m=max_extent_m,
+            )
+
         if self.capacity == 0:
-            return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+            return load()
         try:
             yaml_digest = hashlib.sha256(Path(yaml_path).read_bytes()).hexdigest()
             image_digest = image_sha256 or sha256_file(image_path)
         except OSError:
             # Let the loader report the problem with its own, precise message.
-            return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+            return load()
         key = (yaml_digest, image_digest.lower())
         with self._lock:
             cached = self._maps.get(key)
@@ -66,10 +79,15 @@ class MapCache:
             # Same content, another bundle: check the size limit and the paths as for a fresh load.
             # Anything wrong: the loader reports it with its own, precise message.
             too_big = cached.width * cached.height > max_pixels
+            if max_extent_m is not None:
+                too_big |= max(cached.width, cached.height) * cached.resolution > max_extent_m
+            if resolution_range_m is not None:
+                low, high = resolution_range_m
+                too_big |= not low <= cached.resolution <= high
             if too_big or not _inside(confine_to, yaml_path, image_path):
-                return load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+                return load()
             return _renamed(cached, Path(yaml_path), Path(image_path))
-        loaded = load_map(yaml_path, max_pixels=max_pixels, confine_to=confine_to)
+        loaded = load()
         loaded.state.flags.writeable = False
         loaded.occupancy.flags.writeable = False
         with self._lock:

@@ -211,6 +211,8 @@ def load_map(
     *,
     max_pixels: int = 100_000_000,
     confine_to: str | Path | None = None,
+    resolution_range_m: tuple[float, float] | None = None,
+    max_extent_m: float | None = None,
 ) -> OccupancyMap:
     """Read a ROS map YAML and the image it names.
 
@@ -225,6 +227,12 @@ def load_map(
     confine_to
         When given, the YAML and the image, with symlinks followed, must lie inside this
         directory (a bundle must not make the server read files outside it).
+    resolution_range_m
+        When given, ``(low, high)``: a resolution outside it (metres per cell) is rejected
+        before the image is opened.
+    max_extent_m
+        When given, an image wider or taller than this many metres is rejected from its
+        header, before any decoding.
 
     Returns
     -------
@@ -267,12 +275,22 @@ def load_map(
     if root is not None:
         _confine(yaml_path, root, "the map YAML", yaml_path)
     meta = _read_map_yaml(yaml_path)
+    if resolution_range_m is not None:
+        low, high = resolution_range_m
+        if not low <= meta.resolution <= high:
+            raise MapFileError(
+                f"'resolution' {meta.resolution:g} m per cell is outside the range this server "
+                f"accepts, {low:g}..{high:g} m (limits.min_resolution_m, "
+                "limits.max_resolution_m); is the map YAML right?",
+                file=yaml_path,
+            )
+    size_limit = _SizeLimit(max_pixels, meta.resolution, max_extent_m)
     image_path = yaml_path.parent / meta.image  # an absolute `image` wins, as in Nav2
     if root is not None:
         resolved = _confine(image_path, root, f"image path {meta.image!r}", yaml_path)
     else:
         resolved = _resolve(image_path, yaml_path)
-    decoded = _read_image(resolved, image_path, yaml_path, meta.image, max_pixels)
+    decoded = _read_image(resolved, image_path, yaml_path, meta.image, size_limit)
 
     warnings: list[str] = []
     state_lut, occupancy_lut = _lookup_tables(meta)
@@ -508,13 +526,22 @@ def _read_into(f: FileIO, array: NDArray[Any]) -> int:
 
 
 @dataclass(frozen=True)
+class _SizeLimit:
+    """What an image header may give: pixels, and metres when ``max_extent_m`` is set."""
+
+    max_pixels: int
+    resolution: float
+    max_extent_m: float | None = None
+
+
+@dataclass(frozen=True)
 class _Decoded:
     grey: NDArray[np.uint8]  # (H, W), 0..255, a buffer the caller may overwrite
     transparent: NDArray[np.bool_] | None  # (H, W), only when some pixel is not fully opaque
 
 
 def _read_image(
-    resolved: Path, image_path: Path, yaml_path: Path, name: str, max_pixels: int
+    resolved: Path, image_path: Path, yaml_path: Path, name: str, limit: _SizeLimit
 ) -> _Decoded:
     try:
         f = _open_regular(resolved)
@@ -526,9 +553,9 @@ def _read_image(
         with f:
             head = _read_up_to(f, _HEAD_BYTES)
             if head.startswith(_PNG_SIGNATURE):
-                return _read_png(f, head, image_path, max_pixels)
+                return _read_png(f, head, image_path, limit)
             if head[:2] in (b"P2", b"P5"):
-                return _read_pgm(f, head, image_path, max_pixels)
+                return _read_pgm(f, head, image_path, limit)
     except OSError as error:
         raise MapFileError(f"cannot read image: {_os_reason(error)}", file=image_path) from None
     raise MapFileError(_not_an_image(head), file=image_path)
@@ -542,20 +569,29 @@ def _not_an_image(head: bytes) -> str:
     return f"not a PGM or PNG image (it starts with {head[:12]!r})"
 
 
-def _check_size(width: int, height: int, max_pixels: int, image_path: Path) -> None:
+def _check_size(width: int, height: int, limit: _SizeLimit, image_path: Path) -> None:
     if width < 1 or height < 1:
         raise MapFileError(f"the header gives an empty image, {width} x {height}", file=image_path)
-    if width * height > max_pixels:
+    if width * height > limit.max_pixels:
         raise MapFileError(
             f"the header gives {width} x {height} = {width * height} pixels, more than "
-            f"max_image_pixels {max_pixels}; not decoded",
+            f"max_image_pixels {limit.max_pixels}; not decoded",
             file=image_path,
         )
+    if limit.max_extent_m is not None:
+        width_m, height_m = width * limit.resolution, height * limit.resolution
+        if max(width_m, height_m) > limit.max_extent_m:
+            raise MapFileError(
+                f"the map is {width_m:.0f} m x {height_m:.0f} m ({width} x {height} pixels at "
+                f"{limit.resolution:g} m), larger than limits.max_map_extent_m "
+                f"{limit.max_extent_m:g} m; not decoded",
+                file=image_path,
+            )
 
 
-def _read_pgm(f: FileIO, head: bytes, image_path: Path, max_pixels: int) -> _Decoded:
+def _read_pgm(f: FileIO, head: bytes, image_path: Path, limit: _SizeLimit) -> _Decoded:
     width, height, maxval, offset = _parse_pgm_header(head, image_path)
-    _check_size(width, height, max_pixels, image_path)
+    _check_size(width, height, limit, image_path)
     count = width * height
     dtype = np.uint8 if maxval < 256 else np.uint16
     f.seek(offset)
@@ -722,12 +758,12 @@ def _to_8bit(raster: NDArray[Any], maxval: int, image_path: Path) -> NDArray[np.
     return out
 
 
-def _read_png(f: FileIO, head: bytes, image_path: Path, max_pixels: int) -> _Decoded:
+def _read_png(f: FileIO, head: bytes, image_path: Path, size_limit: _SizeLimit) -> _Decoded:
     # IHDR must be the first chunk: length 13 at byte 8, type at 12, fields from 16.
     if len(head) < 33 or head[12:16] != b"IHDR":
         raise MapFileError("PNG has no IHDR header (truncated or corrupt)", file=image_path)
     width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
-    _check_size(width, height, max_pixels, image_path)
+    _check_size(width, height, size_limit, image_path)
     channels = _PNG_CHANNELS.get(colour)
     if channels is None or depth not in (1, 2, 4, 8, 16):
         raise MapFileError(

@@ -111,12 +111,24 @@ class _Inputs:
 
 
 def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inputs:
+    limits = config.limits
     try:
-        files = check_bundle_files(bundle_dir, verify_checksums=not checksums_verified)
+        files = check_bundle_files(
+            bundle_dir, verify_checksums=not checksums_verified, limits=limits
+        )
     except BundleIncomplete as error:
         # process runs on bundles said to be complete: a missing file is an error here.
         raise BundleError(error.problem, file=error.file) from None
-    local = load_map(files.slam_yaml, max_pixels=config.max_image_pixels, confine_to=bundle_dir)
+    # The sanity limits on the maps are checked from the YAML and the image header: before
+    # anything is decoded.
+    resolutions, extent = limits.resolution_range_m, limits.max_map_extent_m
+    local = load_map(
+        files.slam_yaml,
+        max_pixels=config.max_image_pixels,
+        confine_to=bundle_dir,
+        resolution_range_m=resolutions,
+        max_extent_m=extent,
+    )
     if files.nav2_yaml is not None and files.nav2_image is not None:
         rel = files.nav2_image.relative_to(bundle_dir).as_posix()
         global_map = GLOBAL_MAPS.load(
@@ -125,6 +137,8 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
             max_pixels=config.max_image_pixels,
             confine_to=bundle_dir,
             image_sha256=(files.manifest.checksums or {}).get(rel),
+            resolution_range_m=resolutions,
+            max_extent_m=extent,
         )
     elif config.reference_map is not None:
         ref = config.reference_map
@@ -132,7 +146,13 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
             ref_image = ref.parent / map_image_name(ref)
         except BundleError as error:
             raise MapFileError(error.problem, file=ref) from None
-        global_map = GLOBAL_MAPS.load(ref, ref_image, max_pixels=config.max_image_pixels)
+        global_map = GLOBAL_MAPS.load(
+            ref,
+            ref_image,
+            max_pixels=config.max_image_pixels,
+            resolution_range_m=resolutions,
+            max_extent_m=extent,
+        )
     else:
         raise BundleError(
             "the manifest names no nav2_map and no reference_map is configured",

@@ -11,6 +11,7 @@ crashes (or a daemon killed with -9) leaves nothing half-done behind.
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing
 import os
@@ -34,7 +35,15 @@ from watchdog.observers.polling import PollingObserver
 
 from mapserver.config import Config
 from mapserver.errors import MapserverError
-from mapserver.inbox import EVENT_TYPES, Decision, InboxHandler, Rejected, StabilityTracker, scan
+from mapserver.inbox import (
+    EVENT_TYPES,
+    Decision,
+    InboxHandler,
+    Rejected,
+    StabilityTracker,
+    check_entry,
+    scan,
+)
 from mapserver.lock import daemon_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store
@@ -216,6 +225,7 @@ class Service:
             config.inbox,
             settle_seconds=config.settle_seconds,
             stale_after_seconds=config.stale_after_seconds,
+            check=functools.partial(check_entry, limits=config.limits),
         )
         self._hints: SimpleQueue[str | None] = SimpleQueue()
         self._queue: deque[_Job] = deque()

@@ -272,6 +272,11 @@ def _bad_checksum(bundle: Path) -> None:
     (bundle / "bundle.yaml").write_text(yaml.safe_dump(doc))
 
 
+def _pad_manifest(bundle: Path) -> None:
+    with (bundle / "bundle.yaml").open("a") as manifest:
+        manifest.write("# padding\n" * 500)
+
+
 def _never_complete(bundle: Path) -> None:
     (bundle / "slam_map.pgm").unlink()
 
@@ -321,6 +326,10 @@ BAD = [
         "load",
         "slam_map.yaml",
     ),
+    ("resolution-tiny", _map_yaml(resolution=1e-9), "load", "limits.min_resolution_m"),
+    ("map-too-wide", _map_yaml(resolution=0.9), "load", "limits.max_map_extent_m"),
+    ("trajectory-too-long", _manifest(trajectory=[[0, 0, 0]] * 60), "bundle", "max_trajectory"),
+    ("manifest-too-big", _pad_manifest, "bundle", "limits.max_manifest_bytes"),
     ("checksum-mismatch", _bad_checksum, "upload", "sha256"),
     ("never-complete", _never_complete, "upload", "slam_map"),
 ]
@@ -347,7 +356,9 @@ def test_every_malformed_bundle_ends_in_failed_and_the_daemon_keeps_serving(
     (dirs["outbox"] / "reused").mkdir()
     again = make_bundle(tmp_path / "src" / "again", seed=50)
     reused = make_bundle(tmp_path / "src" / "reused", seed=52)
-    config = write_config(tmp_path, stale_after_seconds=2.0, max_image_pixels=40_000)
+    # The table's maps are 5 m wide, their manifests about 1 kB.
+    limits = {"max_map_extent_m": 50, "max_trajectory_poses": 50, "max_manifest_bytes": 4000}
+    config = write_config(tmp_path, stale_after_seconds=2.0, max_image_pixels=40_000, limits=limits)
     dirs["inbox"].mkdir()
     shutil.copytree(sources["corrupt-image"], dirs["inbox"] / "corrupt-image")  # at start-up
     with Daemon(config) as daemon:

@@ -1,0 +1,130 @@
+"""Sanity limits on a bundle's inputs (configuration ``limits:``): refused before any heavy work,
+with the limit named."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from daemon_support import make_bundle
+
+from mapserver.bundle import check_bundle_files, parse_manifest
+from mapserver.config import Config, LimitsConfig, parse_config
+from mapserver.errors import BundleError, ConfigError, MapFileError
+from mapserver.mapcache import MapCache
+from mapserver.maps import FREE, OCCUPIED, load_map, save_map
+from mapserver.pipeline import process_bundle
+
+
+def write_map(path: Path, *, resolution: float, size: int = 40) -> Path:
+    grid = np.full((size, size), FREE, np.uint8)
+    grid[:2, :] = OCCUPIED
+    return save_map(path, grid, resolution, (0.0, 0.0, 0.0))
+
+
+def set_resolution(map_yaml: Path, resolution: float) -> None:
+    doc = yaml.safe_load(map_yaml.read_text())
+    doc["resolution"] = resolution
+    map_yaml.write_text(yaml.safe_dump(doc))
+
+
+@pytest.mark.parametrize(
+    ("resolution", "refused"),
+    [(1e-9, True), (0.004, True), (0.005, False), (0.05, False), (1.0, False), (1.5, True)],
+)
+def test_a_resolution_outside_the_plausible_range_is_refused_before_the_image_is_read(
+    tmp_path: Path, resolution: float, refused: bool
+) -> None:
+    map_yaml = write_map(tmp_path / "m.yaml", resolution=0.05)
+    set_resolution(map_yaml, resolution)
+    (tmp_path / "m.pgm").write_bytes(b"not read when the resolution is refused")
+    if not refused:
+        with pytest.raises(MapFileError, match="not a PGM or PNG"):  # it went on to the image
+            load_map(map_yaml, resolution_range_m=(0.005, 1.0))
+        return
+    with pytest.raises(MapFileError) as caught:
+        load_map(map_yaml, resolution_range_m=(0.005, 1.0))
+    reason = caught.value.reason
+    assert reason.startswith(f"{map_yaml}: 'resolution' {resolution:g} m per cell is outside")
+    assert "0.005..1 m" in reason and "limits.min_resolution_m" in reason
+
+
+def test_a_map_larger_than_the_extent_limit_is_refused_from_its_header(tmp_path: Path) -> None:
+    map_yaml = write_map(tmp_path / "m.yaml", resolution=0.5, size=40)  # 20 m x 20 m
+    assert load_map(map_yaml, max_extent_m=20.0).width == 40
+    with pytest.raises(MapFileError) as caught:
+        load_map(map_yaml, max_extent_m=19.9)
+    assert "the map is 20 m x 20 m (40 x 40 pixels at 0.5 m)" in caught.value.reason
+    assert "limits.max_map_extent_m 19.9 m" in caught.value.reason
+    assert load_map(map_yaml).width == 40  # no limit given: none applied
+
+
+def test_the_map_cache_applies_the_limits_to_a_map_it_holds(tmp_path: Path) -> None:
+    map_yaml = write_map(tmp_path / "m.yaml", resolution=0.5, size=40)
+    cache = MapCache()
+    image = tmp_path / "m.pgm"
+    assert cache.load(map_yaml, image, max_pixels=10_000).width == 40
+    with pytest.raises(MapFileError, match="max_map_extent_m"):
+        cache.load(map_yaml, image, max_pixels=10_000, max_extent_m=10.0)
+    with pytest.raises(MapFileError, match="outside the range"):
+        cache.load(map_yaml, image, max_pixels=10_000, resolution_range_m=(0.01, 0.1))
+
+
+def manifest(**changes: Any) -> str:
+    doc: dict[str, Any] = {
+        "format": 1,
+        "robot": "r1",
+        "stamp": "2026-11-21T10:15:00Z",
+        "slam_map": "slam_map.yaml",
+        "pose": {"nav2": {"x": 0, "y": 0, "yaw": 0}, "slam": {"x": 0, "y": 0, "yaw": 0}},
+    }
+    doc.update(changes)
+    return yaml.safe_dump(doc)
+
+
+def test_a_trajectory_longer_than_the_limit_is_refused_before_its_poses_are_read() -> None:
+    limits = LimitsConfig(max_trajectory_poses=3)
+    poses = [{"x": i, "y": 0, "yaw": 0} for i in range(3)]
+    assert len(parse_manifest(manifest(trajectory=poses), limits=limits).trajectory or []) == 3
+    # The fourth pose is not even a pose: the count is checked first.
+    with pytest.raises(BundleError) as caught:
+        parse_manifest(manifest(trajectory=[*poses, "junk"]), limits=limits)
+    assert "the trajectory has 4 poses, more than limits.max_trajectory_poses 3" in (
+        caught.value.reason
+    )
+
+
+def test_a_manifest_larger_than_the_limit_is_refused_unread(tmp_path: Path) -> None:
+    bundle = make_bundle(tmp_path / "run-1")
+    size = (bundle / "bundle.yaml").stat().st_size
+    assert check_bundle_files(bundle, limits=LimitsConfig(max_manifest_bytes=size))
+    with pytest.raises(BundleError) as caught:
+        check_bundle_files(bundle, limits=LimitsConfig(max_manifest_bytes=size - 1))
+    assert caught.value.stage == "bundle"
+    assert f"the manifest is {size} bytes, more than limits.max_manifest_bytes {size - 1}" in (
+        caught.value.reason
+    )
+
+
+def test_limits_in_the_configuration_are_checked(tmp_path: Path) -> None:
+    assert Config().limits == LimitsConfig()
+    with pytest.raises(ConfigError, match="min_resolution_m must not be larger"):
+        parse_config({"limits": {"min_resolution_m": 2.0}}, base_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"unknown key 'limits\.max_poses'"):
+        parse_config({"limits": {"max_poses": 2}}, base_dir=tmp_path)
+
+
+def test_a_bundle_with_a_nanometre_map_fails_at_load_with_the_reason_not_in_align(
+    tmp_path: Path,
+) -> None:
+    # It used to reach warpAffine and fail with "align failed unexpectedly ... please report".
+    bundle = make_bundle(tmp_path / "run-1", checksums=False)
+    set_resolution(bundle / "slam_map.yaml", 1e-9)
+    with pytest.raises(MapFileError) as caught:
+        process_bundle(bundle, Config())
+    assert caught.value.stage == "load"
+    assert "slam_map.yaml: 'resolution' 1e-09 m per cell is outside" in caught.value.reason
+    assert "report" not in caught.value.reason
