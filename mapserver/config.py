@@ -150,6 +150,11 @@ class Config(_Frozen):
     workers: int = Field(0, ge=0)
     observer: Literal["native", "polling"] = "native"
     max_image_pixels: int = Field(100_000_000, gt=0)
+    bundle_timeout_seconds: float = Field(300.0, gt=0)
+    """A bundle still in a worker after this long is stopped (its worker killed) and failed."""
+    worker_memory_mb: int | None = Field(None, gt=0)
+    """A worker using more memory than this (MiB) is stopped and its bundle failed. None: a share
+    of the machine, see :meth:`worker_memory_limit_mb`."""
     limits: LimitsConfig = LimitsConfig()
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     pipeline: PipelineConfig = PipelineConfig()
@@ -166,6 +171,38 @@ class Config(_Frozen):
     def worker_count(self) -> int:
         """``workers``, with 0 meaning the number of cores."""
         return self.workers or (os.cpu_count() or 1)
+
+    def worker_memory_limit_mb(self) -> int:
+        """``worker_memory_mb``, by default the memory available to the daemon (the machine's,
+        or the service's cgroup ``memory.max`` when lower, as systemd's ``MemoryMax=`` sets it)
+        divided by workers + 1: the workers at their limits leave one share to the main process
+        and the rest of the machine."""
+        if self.worker_memory_mb is not None:
+            return self.worker_memory_mb
+        return max(64, available_memory_mb() // (self.worker_count() + 1))
+
+
+def available_memory_mb() -> int:
+    """The machine's memory, or the lowest cgroup (v2) ``memory.max`` above this process when
+    lower (systemd's ``MemoryMax=`` of the service or its slice), in MiB."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        with open("/proc/self/cgroup", encoding="ascii") as cgroups:
+            groups = [line.strip()[3:] for line in cgroups if line.startswith("0::/")]
+    except OSError:
+        groups = []  # no cgroup v2: the machine's memory
+    if groups:
+        group = Path("/sys/fs/cgroup", groups[0].lstrip("/"))
+        for level in (group, *group.parents):
+            if level == Path("/sys/fs"):
+                break
+            try:
+                limit = (level / "memory.max").read_text().strip()
+            except OSError:
+                continue
+            if limit.isdigit():
+                total = min(total, int(limit))
+    return total // 2**20
 
 
 def parse_config(data: object, *, base_dir: Path, source: Path | None = None) -> Config:

@@ -9,6 +9,7 @@ enough context (the stage, the file, the field) to write one line a person can a
     ``BundleError``      -- a bundle manifest or its files are wrong (bad field, checksum, path).
         ``BundleIncomplete`` -- not an error yet: some file is missing or still changing.
     ``ProcessingError``  -- the pipeline failed on otherwise valid input.
+        ``OutOfMemory``  -- a stage ran out of memory (the daemon's workers have a limit).
 """
 
 from __future__ import annotations
@@ -66,6 +67,10 @@ class BundleIncomplete(BundleError):
 
 class ProcessingError(MapserverError):
     default_stage = "process"
+
+
+class OutOfMemory(ProcessingError):
+    """A stage could not allocate the memory it needed."""
 
 
 def describe_validation(error: ValidationError) -> str:

@@ -29,6 +29,7 @@ from mapserver.errors import (
     BundleIncomplete,
     MapFileError,
     MapserverError,
+    OutOfMemory,
     ProcessingError,
 )
 from mapserver.geometry import Pose2D, Transform2D
@@ -64,6 +65,16 @@ class Outcome:
     images: dict[str, bytes]
 
 
+_stage_listener: Callable[[str], None] | None = None
+
+
+def on_stage(listener: Callable[[str], None] | None) -> None:
+    """Call ``listener(name)`` as each stage of :func:`process_bundle` begins, in this process
+    (the daemon's workers tell the main process which stage a bundle is in). None: stop."""
+    global _stage_listener
+    _stage_listener = listener
+
+
 class _Stages:
     """Times each stage, logs one line per stage with the bundle id, and tags errors with it."""
 
@@ -75,14 +86,18 @@ class _Stages:
     def stage(self, name: str) -> Iterator[None]:
         start = time.perf_counter()
         try:
+            if _stage_listener is not None:
+                _stage_listener(name)
             yield
         except MapserverError as error:
             if error.stage == error.default_stage and name != "load":
                 error.stage = name
             raise
-        except MemoryError:
-            raise ProcessingError(
-                f"{name}: out of memory; the maps may be too large for this server", stage=name
+        except MemoryError as error:
+            detail = f" ({error})" if str(error) else ""
+            raise OutOfMemory(
+                f"{name}: out of memory{detail}; the maps may be too large for this server",
+                stage=name,
             ) from None
         except Exception as error:
             # A bug or an input no check foresaw: name the stage, keep the traceback in the log,

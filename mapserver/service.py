@@ -11,7 +11,9 @@ crashes (or a daemon killed with -9) leaves nothing half-done behind.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import itertools
 import logging
 import multiprocessing
 import os
@@ -33,8 +35,9 @@ from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
+from mapserver.board import Board, mapped_bytes, resident_bytes
 from mapserver.config import Config
-from mapserver.errors import MapserverError
+from mapserver.errors import MapserverError, OutOfMemory
 from mapserver.inbox import (
     EVENT_TYPES,
     Decision,
@@ -56,6 +59,12 @@ log = logging.getLogger(__name__)
 CRASH_ENV = "MAPSERVER_TEST_CRASH_AT"
 """Test hook: the name of a checkpoint (see :class:`~mapserver.outbox.Store`, plus
 ``submitted``) at which the daemon kills itself with SIGKILL, to test recovery from each one."""
+
+FAULT_ENV = "MAPSERVER_TEST_FAULT"
+"""Test hook: ``<bundle id>@<stage>=<fault>``, comma-separated. A worker entering that stage of
+that bundle hangs (``hang``), grows its resident memory past ``worker_memory_mb`` and holds it
+(``hog``), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
+tested on a real daemon."""
 
 ProcessFn = Callable[..., "Outcome"]
 
@@ -118,18 +127,97 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _init_worker(setup: Callable[[], None] | None, daemon_pid: int, threads: int) -> None:
+@dataclass
+class _Worker:
+    """This worker process's part: its slot on the pool's board, its memory limit, the bundle
+    in hand and the test faults."""
+
+    board: Board | None = None
+    memory_limit_mb: int = 0
+    bundle_id: str = ""
+    faults: dict[tuple[str, str], str] | None = None
+
+
+_WORKER = _Worker()
+
+
+def _init_worker(
+    setup: Callable[[], None] | None,
+    daemon_pid: int,
+    threads: int,
+    board: Board | None = None,
+    memory_limit_mb: int = 0,
+) -> None:
     _exit_with(daemon_pid)
     # The pool already keeps every core busy: OpenCV's own threads on top would only contend.
     import cv2
+
+    from mapserver.pipeline import on_stage
 
     cv2.setNumThreads(threads)
     # Stopping is the parent's business: a Ctrl-C in a terminal reaches the whole process group,
     # and a worker that died of it would look like a crash.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if board is not None:
+        board.join()
+    _WORKER.board = board
+    _WORKER.memory_limit_mb = memory_limit_mb
+    _WORKER.faults = _parse_faults(os.environ.get(FAULT_ENV, ""))
+    if memory_limit_mb:
+        _limit_address_space(memory_limit_mb)
+    on_stage(_entered_stage)
     if setup is not None:
         setup()
+
+
+def _limit_address_space(limit_mb: int) -> None:
+    """RLIMIT_AS at the worker's size now plus ``limit_mb``: an allocation that would take it
+    further fails at once with MemoryError (the stage's out-of-memory failure), before the
+    main process, which watches resident memory about once a second, could see it, and before
+    the kernel's OOM killer picks a process."""
+    import resource
+
+    mapped = mapped_bytes()
+    if mapped is None:
+        return
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = mapped + limit_mb * 2**20
+    if hard != resource.RLIM_INFINITY:
+        limit = min(limit, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+
+
+def _entered_stage(name: str) -> None:
+    """The pipeline's stage listener in a worker: tell the main process."""
+    if _WORKER.board is not None:
+        _WORKER.board.stage(name)
+    fault = (_WORKER.faults or {}).get((_WORKER.bundle_id, name))
+    if fault is not None:
+        _inject(fault)
+
+
+def _parse_faults(text: str) -> dict[tuple[str, str], str]:
+    faults = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        where, _, fault = item.partition("=")
+        bundle_id, _, stage = where.partition("@")
+        faults[(bundle_id, stage)] = fault
+    return faults
+
+
+def _inject(fault: str) -> None:
+    import numpy as np
+
+    limit = _WORKER.memory_limit_mb * 2**20
+    if fault == "alloc":
+        np.ones(2 * limit, np.uint8)
+    held = []
+    if fault == "hog":
+        while (resident_bytes(os.getpid()) or 0) < limit + 32 * 2**20:
+            held.append(np.ones(8 * 2**20, np.uint8))  # written: resident, not just mapped
+    while True:  # hang (and hold what it took) until the main process stops this worker
+        time.sleep(60)
 
 
 # How long one turn of the main loop may spend checking uploads.
@@ -154,17 +242,30 @@ def _noop() -> None:
     return None
 
 
-def work(process: ProcessFn, bundle_dir: str, config: Config, bundle_id: str) -> WorkDone:
-    """Run in a worker: process one bundle; bad input becomes a :class:`WorkDone` with a reason."""
+def work(
+    process: ProcessFn, bundle_dir: str, config: Config, bundle_id: str, token: int = 0
+) -> WorkDone:
+    """Run in a worker: process one bundle; bad input becomes a :class:`WorkDone` with a reason.
+    ``token`` names the job on the pool's board while it runs."""
     start = time.perf_counter()
+    if _WORKER.board is not None:
+        _WORKER.board.begin(token)
+    _WORKER.bundle_id = bundle_id
     try:
         outcome = process(Path(bundle_dir), config, bundle_id=bundle_id)
     except MapserverError as error:
-        return WorkDone(None, error.stage, error.reason, time.perf_counter() - start)
+        reason = error.reason
+        if isinstance(error, OutOfMemory) and _WORKER.memory_limit_mb:
+            reason += f" (worker_memory_mb: {_WORKER.memory_limit_mb})"
+        return WorkDone(None, error.stage, reason, time.perf_counter() - start)
     except Exception as error:
         log.exception("%s: internal error", bundle_id)
         reason = f"internal error: {type(error).__name__}: {error}"
         return WorkDone(None, "process", reason, time.perf_counter() - start)
+    finally:
+        _WORKER.bundle_id = ""
+        if _WORKER.board is not None:
+            _WORKER.board.end()
     return WorkDone(outcome, seconds=time.perf_counter() - start)
 
 
@@ -180,6 +281,10 @@ class _Job:
     alone: bool = False
     """It was in a worker pool that broke: it now runs with no other bundle beside it."""
     generation: int = 0
+    token: int = 0
+    """Its name on the worker pool's board."""
+    over_limit: tuple[str, str] | None = None
+    """(stage, reason): its worker was stopped past the time or memory limit."""
 
 
 @dataclass
@@ -231,6 +336,12 @@ class Service:
         self._queue: deque[_Job] = deque()
         self._running: dict[Future[WorkDone], _Job] = {}
         self._pool: ProcessPoolExecutor | None = None
+        self._board: Board | None = None
+        self._tokens = itertools.count(1)
+        self._timeout_s = config.bundle_timeout_seconds
+        self._memory_limit_mb = config.worker_memory_limit_mb()
+        self._stopped_in: set[int] = set()
+        """Pool generations in which a worker was stopped past a limit."""
         self._generation = 0
         self._pool_broken = False
         self._counts = _Counts()
@@ -333,6 +444,7 @@ class Service:
             # Finished bundles first: their workers get the next bundle in the queue before
             # anything else here runs (publishing, hashing new uploads).
             self._collect()
+            self._enforce_limits()
             # Bounded, so that a large backlog (checksums to hash) keeps neither the watchdog nor
             # the workers waiting: what is taken goes out below, the rest is looked at on the
             # next turn, a moment later.
@@ -358,6 +470,9 @@ class Service:
         deadline = self._tracker.next_deadline()
         if deadline is not None:
             timeout = min(timeout, deadline - now)
+        if self._running and self._board is not None:
+            for activity in self._board.activities():
+                timeout = min(timeout, activity.started + self._timeout_s - now)
         return max(timeout, 0.01)
 
     def _wait(self, timeout: float) -> set[str]:
@@ -436,6 +551,7 @@ class Service:
             preload.append("sklearn.cluster")
         context.set_forkserver_preload(preload)
         threads = max(1, (os.cpu_count() or 1) // self._workers)
+        self._board = Board(context, self._workers)
         # The fork server reads these when it imports numpy: a BLAS's threads spin on every
         # core, and beside a second worker they cost each a third of its speed (measured).
         for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -444,7 +560,13 @@ class Service:
             max_workers=self._workers,
             mp_context=context,
             initializer=_init_worker,
-            initargs=(self._worker_setup, os.getpid(), threads),
+            initargs=(
+                self._worker_setup,
+                os.getpid(),
+                threads,
+                self._board,
+                self._memory_limit_mb,
+            ),
         )
 
     def _warm_up(self) -> None:
@@ -457,6 +579,9 @@ class Service:
 
     def _replace_pool(self) -> None:
         if self._pool is not None:
+            # A broken pool asks its other workers to stop with SIGTERM, which they ignore (see
+            # _init_worker), and waits for them: its thread, and the daemon's exit, would hang.
+            self._kill_workers()
             self._pool.shutdown(wait=False, cancel_futures=True)
         self._pool = self._new_pool()
         self._generation += 1
@@ -481,7 +606,8 @@ class Service:
             self._replace_pool()
         assert self._pool is not None
         path = str(self._store.taken_path(job.bundle_id))
-        args = (self._process, path, self._config, job.bundle_id)
+        job.token = next(self._tokens)
+        args = (self._process, path, self._config, job.bundle_id, job.token)
         try:
             future = self._pool.submit(work, *args)
         except (BrokenProcessPool, RuntimeError):
@@ -521,6 +647,9 @@ class Service:
     def _crashed(self, job: _Job) -> None:
         if job.generation == self._generation:
             self._pool_broken = True
+        if job.over_limit is not None:  # the bundle's own fault: failed at once, not retried
+            self._fail(job, *job.over_limit)
+            return
         if self._stopping:
             log.warning(
                 "%s: its worker died while stopping; processed again at the next start",
@@ -535,12 +664,57 @@ class Service:
                 "bundle beside it (out of memory, or a crash in the image code)",
             )
             return
+        if job.generation in self._stopped_in:
+            # The pool broke because another bundle's worker was stopped past a limit.
+            log.info(
+                "%s: started again: its worker pool was replaced after another bundle went past "
+                "a limit",
+                job.bundle_id,
+            )
+            self._queue.appendleft(job)
+            return
         log.warning(
             "%s: a worker process died while this bundle was in hand; retrying it alone",
             job.bundle_id,
         )
         job.alone = True
         self._queue.appendleft(job)
+
+    def _enforce_limits(self) -> None:
+        """Stop (SIGKILL) each worker past ``bundle_timeout_seconds`` or ``worker_memory_mb``;
+        its bundle is failed with the stage it was in when the pool reports the worker dead
+        (:meth:`_crashed`), and the other bundles of the pool are started again."""
+        if self._board is None or not self._running:
+            return
+        jobs = {j.token: j for j in self._running.values() if j.generation == self._generation}
+        processes = getattr(self._pool, "_processes", None) or {}
+        now = time.monotonic()
+        for activity in self._board.activities():
+            job = jobs.get(activity.token)
+            if job is None or job.over_limit is not None or activity.pid not in processes:
+                continue
+            held_s = now - activity.started
+            stage = activity.stage
+            if held_s > self._timeout_s:
+                reason = (
+                    f"over the time limit: still in stage {stage} after {held_s:.1f} s "
+                    f"(bundle_timeout_seconds: {self._timeout_s:g}); the maps may be too large "
+                    "for this server, or the bundle makes the pipeline hang"
+                )
+            else:
+                resident = resident_bytes(activity.pid)
+                if resident is None or resident <= self._memory_limit_mb * 2**20:
+                    continue
+                reason = (
+                    f"over the memory limit: {resident / 2**20:.0f} MiB in stage {stage} after "
+                    f"{held_s:.1f} s (worker_memory_mb: {self._memory_limit_mb}); the maps may "
+                    "be too large for this server"
+                )
+            job.over_limit = (stage, reason)
+            self._stopped_in.add(job.generation)
+            log.warning("%s: %s; stopping its worker (pid %d)", job.bundle_id, reason, activity.pid)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(activity.pid, signal.SIGKILL)
 
     def _finish(self, job: _Job, done: WorkDone) -> None:
         bundle_id = job.bundle_id
@@ -601,6 +775,7 @@ class Service:
         while self._running and not self._abort and time.monotonic() < deadline:
             self._wait(min(self._ping_every, max(deadline - time.monotonic(), 0.0)))
             self._collect()
+            self._enforce_limits()
             if time.monotonic() - self._last_ping >= self._ping_every:
                 notify("WATCHDOG=1")
                 self._last_ping = time.monotonic()

@@ -33,6 +33,10 @@ def test_the_unit_says_what_the_daemon_relies_on() -> None:
     assert s["User"] == ["mapserver"]
     assert s["KillMode"] == ["mixed"]  # SIGTERM to the daemon; the workers finish their bundle
     assert len(s["ReadWritePaths"]) == 1 and " " not in s["ReadWritePaths"][0]  # no EXDEV
+    # Bounded: the workers' default worker_memory_mb is a share of MemoryMax, and the kernel
+    # killing one worker at MemoryMax must not stop the service.
+    assert s["MemoryMax"] == ["80%"] and s["OOMPolicy"] == ["continue"]
+    assert 100 <= int(s["TasksMax"][0]) <= 4096
     command = s["ExecStart"][0].split()
     assert command[1:] == ["run", "--config", "/etc/mapserver/mapserver.yaml"]
 
