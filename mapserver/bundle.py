@@ -25,7 +25,13 @@ from pydantic import (
 )
 
 from mapserver.config import LimitsConfig
-from mapserver.errors import BundleError, BundleIncomplete, describe_validation
+from mapserver.errors import (
+    BundleError,
+    BundleIncomplete,
+    ChecksumMismatch,
+    describe_validation,
+    no_such_path,
+)
 from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
 
 MANIFEST = "bundle.yaml"
@@ -179,6 +185,39 @@ def read_manifest(bundle_dir: Path, *, limits: LimitsConfig = _LIMITS) -> Manife
     return parse_manifest(text, source=path, limits=limits)
 
 
+def check_bundle_dir(path: Path) -> None:
+    """That ``path`` is a bundle folder, before anything in it is read; a :class:`BundleError`
+    that says what it is instead: a path that does not exist (with the names close to it), a
+    file (the manifest itself, say), a folder without ``bundle.yaml`` (one holding bundle
+    folders, say)."""
+    path = Path(path)
+    if not path.exists():
+        raise BundleError(no_such_path(path), file=path)
+    if not path.is_dir():
+        if path.name == MANIFEST:
+            hint = f"give the folder that holds it: {path.parent}"
+        else:
+            hint = "a bundle is the folder that holds bundle.yaml and the maps"
+        raise BundleError(f"a file, not a bundle folder; {hint}", file=path)
+    if not (path / MANIFEST).exists():
+        raise BundleError(
+            f"not a bundle: no bundle.yaml in it{nested_bundles_hint(path)}", file=path
+        )
+
+
+def nested_bundles_hint(path: Path) -> str:
+    """When folder ``path`` holds bundle folders (a folder of bundles given, or uploaded, as one
+    bundle), a hint that names a few."""
+    try:
+        inner = sorted(p.name for p in path.iterdir() if (p / MANIFEST).is_file())
+    except OSError:
+        return ""
+    if not inner:
+        return ""
+    shown = ", ".join(inner[:3]) + (", ..." if len(inner) > 3 else "")
+    return f"; it holds {len(inner)} bundle folder{'s' if len(inner) > 1 else ''} ({shown})"
+
+
 def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path:
     """The path of file ``name`` inside ``bundle_dir``; a name that leaves the bundle (absolute,
     ``..``, or a symlink pointing outside) is a :class:`BundleError`."""
@@ -265,8 +304,10 @@ def check_bundle_files(
         path = safe_member(bundle_dir, name, what="checksummed file", source=source)
         if not path.is_file():
             raise BundleIncomplete(f"checksummed file '{name}' is not there yet", file=source)
-        if verify_checksums and sha256_file(path) != expected.lower():
-            raise BundleIncomplete(f"sha256 of '{name}' does not match the manifest", file=path)
+        if verify_checksums:
+            actual = sha256_file(path)
+            if actual != expected.lower():
+                raise ChecksumMismatch(name, expected=expected.lower(), actual=actual, file=path)
     slam_yaml, slam_image = yamls["slam"], images["slam"]
     assert slam_yaml is not None and slam_image is not None
     return BundleFiles(manifest, slam_yaml, slam_image, yamls["nav2"], images["nav2"])

@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from mapserver.config import Config, dump_config, load_config
+from mapserver.config import Config, check_paths, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
 from mapserver.lock import AlreadyRunning, daemon_pid
 
@@ -38,6 +38,7 @@ def _setup_logging(level: str) -> None:
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    check_paths(config)
     sys.stdout.write(dump_config(config))
     return 0
 
@@ -54,8 +55,6 @@ def _cmd_process(args: argparse.Namespace) -> int:
     for bundle in args.bundles:
         bundle_dir = Path(bundle)
         try:
-            if not bundle_dir.is_dir():
-                raise MapserverError("not a bundle directory", file=bundle_dir, stage="bundle")
             outcome = process_bundle(bundle_dir, config)
             final = write_result(outbox, outcome)
         except MapserverError as error:
@@ -279,6 +278,8 @@ def _prepare_demo_dir(root: Path) -> None:
             shutil.rmtree(root / name, ignore_errors=True)
     root.mkdir(parents=True, exist_ok=True)
     (root / _DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
+    for name in _DEMO_DIRS:  # made here: the daemon warns about folders it has to create
+        (root / name).mkdir()
     config: dict[str, Any] = {name: name for name in _DEMO_DIRS}
     config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)
     (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))

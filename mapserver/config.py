@@ -15,7 +15,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from mapserver.errors import ConfigError, describe_validation
+from mapserver.errors import ConfigError, describe_validation, no_such_path
 
 ENV_VAR = "MAPSERVER_CONFIG"
 
@@ -203,6 +203,15 @@ def available_memory_mb() -> int:
             if limit.isdigit():
                 total = min(total, int(limit))
     return total // 2**20
+
+
+def check_paths(config: Config) -> None:
+    """Raise :class:`ConfigError` for a configured file that is not there (a misspelt
+    ``reference_map``): found at start-up, not on the first bundle that needs it."""
+    ref = config.reference_map
+    if ref is not None and not ref.is_file():
+        problem = no_such_path(ref) if not ref.exists() else "not a file"
+        raise ConfigError(f"reference_map: {problem}", file=ref)
 
 
 def parse_config(data: object, *, base_dir: Path, source: Path | None = None) -> Config:

@@ -8,6 +8,7 @@ enough context (the stage, the file, the field) to write one line a person can a
     ``MapFileError``     -- a map YAML or image cannot be read or is invalid.
     ``BundleError``      -- a bundle manifest or its files are wrong (bad field, checksum, path).
         ``BundleIncomplete`` -- not an error yet: some file is missing or still changing.
+            ``ChecksumMismatch`` -- a file's sha256 is not the manifest's (yet).
     ``ProcessingError``  -- the pipeline failed on otherwise valid input.
         ``OutOfMemory``  -- a stage ran out of memory (the daemon's workers have a limit).
 """
@@ -65,12 +66,50 @@ class BundleIncomplete(BundleError):
     """The bundle is not complete yet (a file is missing, or its checksum does not match yet)."""
 
 
+class ChecksumMismatch(BundleIncomplete):
+    """Every file is there, and one's sha256 is not the one the manifest gives: still being
+    rewritten, or a bundle that will never be right. ``expected`` and ``actual`` are hex."""
+
+    def __init__(self, name: str, *, expected: str, actual: str, file: str | Path) -> None:
+        self.name = name
+        self.expected = expected
+        self.actual = actual
+        super().__init__(
+            f"sha256 of '{name}' does not match the manifest: expected {expected}, actual {actual}",
+            file=file,
+        )
+
+
 class ProcessingError(MapserverError):
     default_stage = "process"
 
 
 class OutOfMemory(ProcessingError):
     """A stage could not allocate the memory it needed."""
+
+
+def no_such_path(path: Path) -> str:
+    """The problem with a path that does not exist, for one line of a message: which part of it
+    is missing, and the names beside it that are close (a misspelt path)."""
+    import difflib
+
+    path = Path(path)
+    missing = path
+    while not missing.parent.exists() and missing.parent != missing:
+        missing = missing.parent
+    text = "no such file or directory"
+    if missing != path:
+        text += f" (there is no {missing})"
+    try:
+        names = [p.name for p in missing.parent.iterdir()]
+    except OSError:
+        return text
+    close = difflib.get_close_matches(missing.name, names, n=3, cutoff=0.6)
+    if close:
+        rest = path.relative_to(missing)
+        guesses = [str(missing.parent / name / rest) for name in close]
+        text += f"; did you mean {' or '.join(guesses)}?"
+    return text
 
 
 def describe_validation(error: ValidationError) -> str:

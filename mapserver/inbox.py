@@ -39,9 +39,16 @@ from watchdog.events import (
     FileSystemEventHandler,
 )
 
-from mapserver.bundle import BundleFiles, check_bundle_files, is_in_flight, is_valid_bundle_id
+from mapserver.bundle import (
+    MANIFEST,
+    BundleFiles,
+    check_bundle_files,
+    is_in_flight,
+    is_valid_bundle_id,
+    nested_bundles_hint,
+)
 from mapserver.config import LimitsConfig
-from mapserver.errors import BundleError, BundleIncomplete
+from mapserver.errors import BundleError, BundleIncomplete, ChecksumMismatch
 
 log = logging.getLogger(__name__)
 _LIMITS = LimitsConfig()
@@ -151,6 +158,14 @@ def check_entry(path: Path, *, limits: LimitsConfig = _LIMITS) -> BundleFiles:
             f"invalid bundle id {name!r}: use 1 to 128 letters, digits, '.', '_' and '-', "
             "starting with a letter or digit"
         )
+    if not (path / MANIFEST).exists():
+        hint = nested_bundles_hint(path)
+        if hint:  # never a bundle, whatever else arrives: the manifest would be one level up
+            raise BundleError(
+                f"not a bundle: no bundle.yaml in it{hint}; upload each bundle folder directly "
+                "into the inbox",
+                file=name,
+            )
     root = path.resolve()
     for item in _walk(path):
         rel = item.relative_to(path)
@@ -198,6 +213,8 @@ class _Entry:
     last_change: float
     incomplete: str | None = None
     """Why the current fingerprint is not a complete bundle (None: not checked yet)."""
+    mismatch: bool = False
+    """``incomplete`` is a checksum that does not match, with every file there."""
 
 
 class StabilityTracker:
@@ -209,8 +226,11 @@ class StabilityTracker:
     after it. A complete bundle becomes :class:`Ready`, an entry that can never be a bundle
     :class:`Rejected`; one that stays incomplete with nothing changing for
     ``stale_after_seconds`` is rejected with the last reason it was incomplete (an upload that is
-    still making progress is never cut off). Each decision is returned once, after which the entry
-    is forgotten: a new upload under the same name is a new entry.
+    still making progress is never cut off). A checksum that does not match while every file is
+    there is rejected sooner, after ``mismatch_after_seconds`` without a change (default: 10 x
+    ``settle_seconds``, at most 60 s and at most ``stale_after_seconds``): waiting ten minutes
+    for a file that is not being written is waiting for nothing. Each decision is returned once,
+    after which the entry is forgotten: a new upload under the same name is a new entry.
 
     Not thread-safe: the service's main loop is its only user.
     """
@@ -221,12 +241,16 @@ class StabilityTracker:
         *,
         settle_seconds: float,
         stale_after_seconds: float,
+        mismatch_after_seconds: float | None = None,
         clock: Callable[[], float] = time.monotonic,
         check: Callable[[Path], object] = check_entry,
     ) -> None:
         self._inbox = Path(inbox)
         self._settle = settle_seconds
         self._stale = stale_after_seconds
+        if mismatch_after_seconds is None:
+            mismatch_after_seconds = min(10 * settle_seconds, 60.0)
+        self._mismatch = max(settle_seconds, min(mismatch_after_seconds, stale_after_seconds))
         self._clock = clock
         self._check = check
         self._entries: dict[str, _Entry] = {}
@@ -251,6 +275,7 @@ class StabilityTracker:
             self._entries[name] = _Entry(current, now, now)
         elif entry.fingerprint != current:
             entry.fingerprint, entry.last_change, entry.incomplete = current, now, None
+            entry.mismatch = False
 
     def forget_missing(self, present: set[str]) -> None:
         """Drop entries not in ``present`` (a scan's listing)."""
@@ -259,11 +284,12 @@ class StabilityTracker:
 
     def next_deadline(self) -> float | None:
         """The clock time at which :meth:`poll` may next decide something, None with no entries."""
-        deadlines = [
-            e.last_change + (self._settle if e.incomplete is None else self._stale)
-            for e in self._entries.values()
-        ]
-        return min(deadlines, default=None)
+        return min((self._deadline(e) for e in self._entries.values()), default=None)
+
+    def _deadline(self, entry: _Entry) -> float:
+        if entry.incomplete is None:
+            return entry.last_change + self._settle
+        return entry.last_change + (self._mismatch if entry.mismatch else self._stale)
 
     def poll(self, *, budget_s: float | None = None) -> list[Decision]:
         """The decisions that are due now. With ``budget_s``, stop deciding once that much time
@@ -286,8 +312,15 @@ class StabilityTracker:
             return None
         path = self._inbox / name
         if entry.incomplete is not None:
-            if now - entry.last_change < self._stale or not self._still(name, entry, path, now):
+            if now < self._deadline(entry) or not self._still(name, entry, path, now):
                 return None
+            if entry.mismatch:
+                return Rejected(
+                    name,
+                    "upload",
+                    f"{entry.incomplete} (every file there, nothing changed for "
+                    f"{now - entry.last_change:.0f} s)",
+                )
             return Rejected(
                 name,
                 "upload",
@@ -301,6 +334,7 @@ class StabilityTracker:
             self._check(path)
         except BundleIncomplete as error:
             entry.incomplete = error.reason
+            entry.mismatch = isinstance(error, ChecksumMismatch)
             decision = None
         except BundleError as error:
             decision = Rejected(name, error.stage, error.reason)
@@ -326,5 +360,6 @@ class StabilityTracker:
             return False
         if current != entry.fingerprint:
             entry.fingerprint, entry.last_change, entry.incomplete = current, now, None
+            entry.mismatch = False
             return False
         return True

@@ -22,7 +22,13 @@ from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
 from mapserver import deform, render, roi
 from mapserver import diff as diff_stage
-from mapserver.bundle import BundleFiles, check_bundle_files, is_valid_bundle_id, map_image_name
+from mapserver.bundle import (
+    BundleFiles,
+    check_bundle_dir,
+    check_bundle_files,
+    is_valid_bundle_id,
+    map_image_name,
+)
 from mapserver.config import Config
 from mapserver.errors import (
     BundleError,
@@ -253,6 +259,7 @@ def process_bundle(
     already (the daemon does when it takes a bundle), so they are not hashed again.
     """
     bundle_dir = Path(bundle_dir)
+    check_bundle_dir(bundle_dir)
     bundle_id = bundle_id or bundle_dir.resolve().name
     if not is_valid_bundle_id(bundle_id):
         raise BundleError(

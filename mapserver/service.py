@@ -36,7 +36,7 @@ from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
 from mapserver.board import Board, mapped_bytes, resident_bytes
-from mapserver.config import Config
+from mapserver.config import Config, check_paths
 from mapserver.errors import MapserverError, OutOfMemory
 from mapserver.inbox import (
     EVENT_TYPES,
@@ -384,7 +384,21 @@ class Service:
             for signum in (signal.SIGTERM, signal.SIGINT):
                 previous[signum] = signal.signal(signum, self._on_signal)
         try:
+            check_paths(self._config)
+            folders = {
+                "inbox": self._config.inbox,
+                "outbox": self._config.outbox,
+                "archive": self._config.archive,
+                "failed": self._config.failed,
+            }
+            missing = [f"{name} {path}" for name, path in folders.items() if not path.exists()]
             with daemon_lock(self._config):
+                if missing:  # a misspelt path in the configuration must not pass unseen
+                    log.warning(
+                        "created %s: not there before; if robots upload elsewhere, correct the "
+                        "configuration",
+                        ", ".join(missing),
+                    )
                 return self._run()
         finally:
             for number, handler in previous.items():

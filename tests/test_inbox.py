@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 from pathlib import Path
@@ -314,3 +315,65 @@ def test_check_entry_accepts_a_symlink_inside_the_bundle(tmp_path: Path) -> None
     assert check_entry(bundle).manifest.robot == "r1"
     doc = yaml.safe_load((bundle / "bundle.yaml").read_text())
     assert doc["slam_map"] == "slam_map.yaml"
+
+
+def test_a_complete_bundle_whose_checksum_does_not_match_is_rejected_within_a_minute(
+    tmp_path: Path,
+) -> None:
+    clock = Clock()
+    t = tracker(tmp_path, clock, settle=2.0, stale=600.0)
+    bundle = make_bundle(tmp_path / "run-1")
+    good = (bundle / "slam_map.pgm").read_bytes()
+    expected = yaml.safe_load((bundle / "bundle.yaml").read_text())["checksums"]["slam_map.pgm"]
+    (bundle / "slam_map.pgm").write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    t.touch("run-1")
+    clock.now = 102.0
+    assert t.poll() == []  # checked: it may still be rewritten
+    assert t.next_deadline() == 120.0  # 10 x settle_seconds, not stale_after_seconds
+    clock.now = 110.0
+    (bundle / "slam_map.pgm").write_bytes(good[:-1] + bytes([good[-1] ^ 2]))  # it was rewritten
+    t.touch("run-1")
+    clock.now = 112.0
+    assert t.poll() == []
+    assert t.next_deadline() == 130.0  # 20 s after the last change
+    clock.now = 129.9
+    assert t.poll() == []
+    clock.now = 130.0
+    [decision] = t.poll()
+    assert isinstance(decision, Rejected) and decision.stage == "upload"
+    actual = hashlib.sha256((bundle / "slam_map.pgm").read_bytes()).hexdigest()
+    assert decision.reason == (
+        f"{bundle / 'slam_map.pgm'}: sha256 of 'slam_map.pgm' does not match the manifest: "
+        f"expected {expected}, actual {actual} (every file there, nothing changed for 20 s)"
+    )
+
+
+def test_a_mismatch_that_is_fixed_in_time_is_a_bundle_after_all(tmp_path: Path) -> None:
+    clock = Clock()
+    t = tracker(tmp_path, clock, settle=2.0, stale=600.0)
+    bundle = make_bundle(tmp_path / "run-1")
+    good = (bundle / "slam_map.pgm").read_bytes()
+    (bundle / "slam_map.pgm").write_bytes(b"P5\n1 1\n255\n\x00")
+    t.touch("run-1")
+    clock.now = 102.0
+    assert t.poll() == []
+    clock.now = 115.0
+    (bundle / "slam_map.pgm").write_bytes(good)
+    t.touch("run-1")
+    clock.now = 117.0
+    assert [type(d) for d in t.poll()] == [Ready]
+
+
+def test_a_folder_of_bundles_is_not_a_bundle_and_is_rejected_at_once(tmp_path: Path) -> None:
+    clock = Clock()
+    t = tracker(tmp_path, clock)
+    make_bundle(tmp_path / "runs" / "run-1")
+    make_bundle(tmp_path / "runs" / "run-2")
+    t.touch("runs")
+    clock.now = 102.0
+    [decision] = t.poll()
+    assert isinstance(decision, Rejected) and decision.stage == "bundle"
+    assert decision.reason == (
+        "runs: not a bundle: no bundle.yaml in it; it holds 2 bundle folders (run-1, run-2); "
+        "upload each bundle folder directly into the inbox"
+    )
