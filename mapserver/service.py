@@ -21,6 +21,7 @@ import select
 import signal
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -220,6 +221,14 @@ def _inject(fault: str) -> None:
         time.sleep(60)
 
 
+# How long watchdog's inotify emitter holds a move out of the inbox, waiting for its pair.
+try:
+    from watchdog.observers.inotify_move_event_grouper import InotifyMoveEventGrouper
+
+    _INOTIFY_MOVE_DELAY_S = float(InotifyMoveEventGrouper.delay)
+except ImportError:  # watchdog < 7 (InotifyBuffer, the same half second), or no inotify
+    _INOTIFY_MOVE_DELAY_S = 0.5
+
 # How long one turn of the main loop may spend checking uploads.
 _POLL_TURN_S = 0.05
 
@@ -324,7 +333,9 @@ class Service:
         self._worker_setup = worker_setup
         self._stop_timeout = stop_timeout
         self._checkpoint = env_checkpoint()
-        self._store = Store.from_config(config, checkpoint=self._checkpoint)
+        self._store = Store.from_config(config, checkpoint=self._stepped)
+        self._moved_out_at = float("-inf")
+        """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
         self._workers = config.worker_count()
         self._tracker = StabilityTracker(
             config.inbox,
@@ -431,6 +442,7 @@ class Service:
                 code = self._loop(observer)
             finally:
                 notify("STOPPING=1", "STATUS=stopping: finishing the bundles in hand")
+                self._let_the_observer_pair_its_moves(observer)
                 observer.stop()
                 observer.join()
         finally:
@@ -839,9 +851,41 @@ class Service:
 
     # -- the observer ------------------------------------------------------------------------
 
+    def _stepped(self, step: str) -> None:
+        """The store's checkpoint: note moves out of the inbox, then the test hook."""
+        if step in ("archived", "failed-moved"):
+            self._moved_out_at = time.monotonic()
+        self._checkpoint(step)
+
+    def _let_the_observer_pair_its_moves(self, observer: BaseObserver) -> None:
+        """Wait, before stopping the inotify observer, until it has let go of the last bundle
+        moved out of the inbox (at most half a second after it).
+
+        watchdog holds an IN_MOVED_FROM without its IN_MOVED_TO (a rename out of the watched
+        tree) for ``_INOTIFY_MOVE_DELAY_S``, waiting for its pair; an emitter stopped meanwhile
+        still returns it from its closed queue and logs "InotifyEmitter.queue_events() called
+        when the thread is inactive" at ERROR (watchdog 7, ``DelayedQueue.get`` after
+        ``close()``): every stop right after a bundle was archived did.
+        """
+        if isinstance(observer, PollingObserver):
+            return
+        wait_s = self._moved_out_at + _INOTIFY_MOVE_DELAY_S + 0.2 - time.monotonic()
+        if wait_s > 0:
+            time.sleep(wait_s)
+
     def _start_observer(self) -> BaseObserver:
         config = self._config
         handler = InboxHandler(config.inbox, self._hints)
+        # A bundle moved back into the inbox (a failed one, to be tried again) still carries the
+        # inotify watch it had before it left: watchdog keeps the watches of directories moved
+        # out of its tree, finds that one again and warns that it "will be Overwritten". It is
+        # harmless (the watch follows the directory to its new name), and a bare warning on
+        # stderr is not for an operator.
+        warnings.filterwarnings(
+            "ignore",
+            message=r"Callback with id .* already exists for watch",
+            category=RuntimeWarning,
+        )
         kinds = ["native", "polling"] if config.observer == "native" else ["polling"]
         for kind in kinds:
             observer: BaseObserver
