@@ -50,7 +50,8 @@ from mapserver.inbox import (
 )
 from mapserver.lock import daemon_lock
 from mapserver.notify import notify, watchdog_period
-from mapserver.outbox import RESULT, Store
+from mapserver.outbox import RESULT, Store, utc_now
+from mapserver.status import write_status
 
 if TYPE_CHECKING:
     from mapserver.pipeline import Outcome
@@ -335,6 +336,8 @@ class Service:
         self._checkpoint = env_checkpoint()
         self._store = Store.from_config(config, checkpoint=self._stepped)
         self._moved_out_at = float("-inf")
+        self._started_at = utc_now()
+        self._status_written: tuple[tuple[int, ...], float] = ((), float("-inf"))
         """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
         self._workers = config.worker_count()
         self._tracker = StabilityTracker(
@@ -438,6 +441,7 @@ class Service:
                     len(recovered),
                 )
                 notify("READY=1", self._status())
+                self._write_status()
                 self.ready.set()
                 code = self._loop(observer)
             finally:
@@ -848,6 +852,38 @@ class Service:
             notify("WATCHDOG=1", self._status())
         else:
             notify(self._status())
+        self._write_status()
+
+    def _write_status(self) -> None:
+        """``inbox/.mapserver.status`` for ``mapserver status``: when the counts change, and
+        every 30 s (its age tells a hung daemon)."""
+        counts = (
+            len(self._tracker),
+            len(self._queue),
+            len(self._running),
+            self._counts.results,
+            self._counts.failed,
+        )
+        now = time.monotonic()
+        if counts == self._status_written[0] and now - self._status_written[1] < 30.0:
+            return
+        document = {
+            "format": 1,
+            "pid": os.getpid(),
+            "started_at": self._started_at,
+            "updated_at": utc_now(),
+            "uploading": counts[0],
+            "queued": counts[1],
+            "processing": counts[2],
+            "results": counts[3],
+            "failed": counts[4],
+        }
+        try:
+            write_status(self._config.inbox, document)
+        except OSError as error:  # never worth stopping for
+            log.debug("cannot write the status file: %s", error)
+            return
+        self._status_written = (counts, now)
 
     # -- the observer ------------------------------------------------------------------------
 

@@ -1,0 +1,205 @@
+"""What ``mapserver status`` reports: is the daemon running (and its pid), its queue, the results
+and failures of the last 24 hours, and the free space of each folder.
+
+The running daemon writes its own counts to ``inbox/.mapserver.status`` (a dot-name, never read
+as an upload) whenever they change, at most once a second; the rest is read from the folders,
+so the report also works when no daemon runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mapserver.config import Config
+from mapserver.lock import daemon_pid
+from mapserver.outbox import ERROR, RESULT, TAKEN
+
+STATUS_NAME = ".mapserver.status"
+DAY_S = 24 * 3600.0
+# Failures listed with their reason (the most recent first); the rest are counted.
+_LISTED_FAILURES = 5
+
+
+def write_status(inbox: Path, document: dict[str, Any]) -> None:
+    """Replace ``inbox/.mapserver.status`` with ``document`` (a reader never sees half of it).
+    Not fsynced: after a crash the lock, not this file, says whether a daemon runs."""
+    path = inbox / STATUS_NAME
+    partial = path.with_name(path.name + ".tmp")
+    partial.write_text(yaml.safe_dump(document, sort_keys=False), encoding="utf-8")
+    os.replace(partial, path)
+
+
+def read_status(inbox: Path) -> dict[str, Any] | None:
+    try:
+        document = yaml.safe_load((inbox / STATUS_NAME).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return None
+    return document if isinstance(document, dict) else None
+
+
+@dataclass(frozen=True)
+class Failure:
+    bundle_id: str
+    failed_at: str
+    stage: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Space:
+    name: str
+    path: Path
+    free_bytes: int | None
+    total_bytes: int | None
+    device: int | None
+
+
+@dataclass
+class Report:
+    pid: int | None
+    """The running daemon's pid; None when none runs."""
+    daemon: dict[str, Any] | None
+    """The running daemon's own status document, when it has written one."""
+    uploading: int = 0
+    queued: int = 0
+    processing: int = 0
+    results_24h: int = 0
+    failed_24h: int = 0
+    failures: list[Failure] = field(default_factory=list)
+    space: list[Space] = field(default_factory=list)
+
+    @property
+    def running(self) -> bool:
+        return self.pid is not None
+
+    def lines(self, config: Config, *, now: float | None = None) -> list[str]:
+        """The report for a person, one fact per line."""
+        now = time.time() if now is None else now
+        out = []
+        if self.running:
+            since = (self.daemon or {}).get("started_at", "?")
+            out.append(f"daemon:    running, pid {self.pid or 'unknown'}, since {since}")
+        else:
+            out.append(f"daemon:    not running (no mapserver run holds {config.inbox})")
+        queue = (
+            f"queue:     {self.uploading} uploading, {self.queued} queued, "
+            f"{self.processing} processing"
+        )
+        if self.running and self.daemon is not None:
+            queue += f" (the daemon's count, {_age(self.daemon.get('updated_at'), now)})"
+        elif self.queued:
+            queue += " (taken before the daemon stopped: processed at its next start)"
+        out.append(queue)
+        out.append(f"last 24 h: {self.results_24h} results, {self.failed_24h} failed")
+        for failure in self.failures:
+            out.append(
+                f"  failed {failure.bundle_id} at {failure.failed_at}, stage {failure.stage}: "
+                f"{failure.reason}"
+            )
+        if self.failed_24h > len(self.failures):
+            out.append(f"  ... and {self.failed_24h - len(self.failures)} more in {config.failed}")
+        out.append("free space:")
+        width = max(len(str(s.path)) for s in self.space)
+        seen: set[int | None] = set()
+        for s in self.space:
+            if s.free_bytes is None or s.total_bytes is None:
+                out.append(f"  {s.name:<8} {s.path!s:<{width}}  not there")
+                continue
+            line = (
+                f"  {s.name:<8} {s.path!s:<{width}}  {_gib(s.free_bytes)} free of "
+                f"{_gib(s.total_bytes)} ({100 * s.free_bytes / max(s.total_bytes, 1):.0f}%)"
+            )
+            if s.device in seen:
+                line += ", the same filesystem"
+            seen.add(s.device)
+            out.append(line)
+        return out
+
+
+def report(config: Config, *, now: float | None = None) -> Report:
+    """Gather the report for ``config``'s folders (reads only)."""
+    now = time.time() if now is None else now
+    pid = daemon_pid(config)
+    daemon = read_status(config.inbox) if pid is not None else None
+    if daemon is not None and daemon.get("pid") != pid:
+        daemon = None  # left by an earlier daemon
+    out = Report(pid, daemon)
+    if daemon is not None:
+        out.uploading = int(daemon.get("uploading", 0))
+        out.queued = int(daemon.get("queued", 0))
+        out.processing = int(daemon.get("processing", 0))
+    else:
+        out.uploading = len(_visible(config.inbox))
+        out.queued = len(_visible(config.inbox / TAKEN))
+    since = now - DAY_S
+    out.results_24h = sum(1 for _ in _recent(config.outbox, RESULT, since))
+    failed = sorted(_recent(config.failed, ERROR, since), key=lambda item: -item[1])
+    out.failed_24h = len(failed)
+    out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
+    for name in ("inbox", "outbox", "archive", "failed"):
+        path = getattr(config, name)
+        try:
+            usage = shutil.disk_usage(path)
+            device: int | None = os.stat(path).st_dev
+        except OSError:
+            out.space.append(Space(name, path, None, None, None))
+            continue
+        out.space.append(Space(name, path, usage.free, usage.total, device))
+    return out
+
+
+def _visible(path: Path) -> list[str]:
+    try:
+        with os.scandir(path) as entries:
+            return [e.name for e in entries if not e.name.startswith(".")]
+    except OSError:
+        return []
+
+
+def _recent(folder: Path, name: str, since: float) -> list[tuple[Path, float]]:
+    """``folder/<id>/<name>`` written since ``since`` (epoch seconds), with that time."""
+    found = []
+    for bundle_id in _visible(folder):
+        path = folder / bundle_id / name
+        with contextlib.suppress(OSError):
+            mtime = path.stat().st_mtime
+            if mtime >= since:
+                found.append((path, mtime))
+    return found
+
+
+def _failure(error_yaml: Path) -> Failure:
+    try:
+        document = yaml.safe_load(error_yaml.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        document = None
+    if not isinstance(document, dict):
+        document = {}
+    return Failure(
+        error_yaml.parent.name,
+        str(document.get("failed_at", "?")),
+        str(document.get("stage", "?")),
+        str(document.get("reason", "(unreadable error.yaml)")),
+    )
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB"
+
+
+def _age(stamp: object, now: float) -> str:
+    try:
+        then = datetime.fromisoformat(str(stamp).replace("Z", "+00:00"))
+    except ValueError:
+        return "age unknown"
+    seconds = max(0.0, now - then.replace(tzinfo=then.tzinfo or timezone.utc).timestamp())
+    return f"{seconds:.0f} s ago"
