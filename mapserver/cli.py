@@ -1,4 +1,8 @@
-"""The ``mapserver`` command: a thin layer over the library. The only place that configures logging."""
+"""The ``mapserver`` command: a thin layer over the library. The only place that configures logging.
+
+Each subcommand's help (``mapserver <command> --help``) is written for the operator who runs it
+and ends with an example.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import textwrap
 import time
 from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
@@ -21,7 +26,7 @@ from typing import Any
 
 import yaml
 
-from mapserver.config import Config, check_paths, dump_config, load_config
+from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
 from mapserver.lock import AlreadyRunning, daemon_pid
 
@@ -43,27 +48,53 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _built_in_config(args: argparse.Namespace) -> bool:
+    """Whether the configuration is the built-in one (no --config, no $MAPSERVER_CONFIG): its
+    folders are in the current directory."""
+    return args.config is None and not os.environ.get(ENV_VAR)
+
+
 def _cmd_process(args: argparse.Namespace) -> int:
-    from mapserver.outbox import write_result
+    from mapserver.outbox import RESULT, write_result
     from mapserver.pipeline import process_bundle
 
     config = load_config(args.config)
     _setup_logging(config.log_level)
     outbox = Path(args.outbox).resolve() if args.outbox else config.outbox
     _refuse_a_daemons_outbox(config, outbox)
+    if not outbox.exists() and args.outbox is None and _built_in_config(args):
+        sys.stderr.write(
+            f"mapserver: results go to {outbox} (the built-in default; choose with --outbox DIR "
+            "or --config FILE)\n"
+        )
     failures = 0
     for bundle in args.bundles:
         bundle_dir = Path(bundle)
         try:
             outcome = process_bundle(bundle_dir, config)
+            replaced = (outbox / outcome.bundle_id / RESULT).exists()
             final = write_result(outbox, outcome)
         except MapserverError as error:
             failures += 1
             sys.stderr.write(f"mapserver: error: {error.reason}\n")
             continue
-        n = len(outcome.result.get("differences", []))
-        sys.stdout.write(f"{outcome.bundle_id}: {n} differences -> {final / 'result.yaml'}\n")
+        differences = outcome.result.get("differences") or []
+        note = " (replaced the earlier result)" if replaced else ""
+        lines = [f"{outcome.bundle_id}: {len(differences)} differences -> {final / RESULT}{note}"]
+        lines += [_difference_line(d) for d in differences]
+        sys.stdout.write("\n".join(lines) + "\n")
     return 1 if failures else 0
+
+
+def _difference_line(d: dict[str, Any]) -> str:
+    """One difference of a result.yaml: id, kind, area and centroid in metres, its box."""
+    c, b = d.get("centroid", {}), d.get("bbox", {})
+    return (
+        f"  {d.get('id')}. {d.get('kind', '?'):7} {d.get('area_m2', 0):7.2f} m2 at "
+        f"x={c.get('x', 0):.2f} y={c.get('y', 0):.2f}  "
+        f"(box x {b.get('min_x', 0):.2f}..{b.get('max_x', 0):.2f}, "
+        f"y {b.get('min_y', 0):.2f}..{b.get('max_y', 0):.2f})"
+    )
 
 
 def _refuse_a_daemons_outbox(config: Config, outbox: Path) -> None:
@@ -115,9 +146,34 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from mapserver.service import Service
 
     config = load_config(args.config)
+    # A daemon started by mistake in the wrong directory would make four folders there and watch
+    # an inbox no robot uploads to.
+    if _built_in_config(args) and not config.inbox.is_dir():
+        raise MapserverError(
+            f"no configuration given (--config FILE, or $MAPSERVER_CONFIG), and no inbox/ in "
+            f"the current directory {Path.cwd()}: the built-in defaults would create inbox/, "
+            "outbox/, archive/ and failed/ here. Give --config, or create inbox/ here to run on "
+            "the built-in defaults in this directory",
+            stage="run",
+        )
     _setup_daemon_logging(config.log_level)
+    if _built_in_config(args):
+        log.warning("no --config: the built-in defaults, with every folder in %s", Path.cwd())
     setup = functools.partial(_setup_daemon_logging, config.log_level)
     return Service(config, worker_setup=setup).run()
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from mapserver.status import report
+
+    config = load_config(args.config)
+    found = report(config)
+    sys.stdout.write("\n".join(found.lines(config)) + "\n")
+    return 0 if found.running else _NOT_RUNNING
+
+
+# The exit code of ``status`` when no daemon runs (LSB's "program is not running").
+_NOT_RUNNING = 3
 
 
 # -- mapserver bundle (the robot side) -------------------------------------------------------
@@ -324,14 +380,7 @@ def _describe_result(bundle_id: str, result_dir: Path) -> list[str]:
         f"  result.yaml  {result_dir / 'result.yaml'}",
         f"  overlay.png  {result_dir / 'overlay.png'}",
     ]
-    for d in differences:
-        c, b = d.get("centroid", {}), d.get("bbox", {})
-        lines.append(
-            f"  {d.get('id')}. {d.get('kind', '?'):7} {d.get('area_m2', 0):7.2f} m2 at "
-            f"x={c.get('x', 0):.2f} y={c.get('y', 0):.2f}  "
-            f"(box x {b.get('min_x', 0):.2f}..{b.get('max_x', 0):.2f}, "
-            f"y {b.get('min_y', 0):.2f}..{b.get('max_y', 0):.2f})"
-        )
+    lines += [_difference_line(d) for d in differences]
     return lines
 
 
@@ -402,29 +451,126 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if ok and code == 0 else 1
 
 
+_CONFIG_HELP = (
+    "the configuration file (default: $MAPSERVER_CONFIG, else the built-in defaults, with every "
+    "folder in the current directory)"
+)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mapserver")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        import mapserver
+
+        return mapserver.__version__
+
+
+def _command(
+    sub: Any, name: str, summary: str, description: str, example: str
+) -> argparse.ArgumentParser:
+    parser: argparse.ArgumentParser = sub.add_parser(
+        name,
+        help=summary,
+        description=textwrap.fill(description, 79),
+        epilog=f"example:\n{example}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    return parser
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mapserver", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="mapserver",
+        description=textwrap.fill(
+            "mapserver: robots upload bundles (a SLAM map, the map they navigated on, one pose "
+            "in both); mapserver aligns the maps and reports the obstacles added and removed. "
+            "'mapserver run' is the daemon; the other commands are for one-off work and for the "
+            "operator.",
+            79,
+        ),
+        epilog="examples:\n"
+        "  mapserver status --config /etc/mapserver/mapserver.yaml\n"
+        "  mapserver process --outbox /tmp/results ~/bundles/run-0042\n"
+        "  mapserver demo\n"
+        "'mapserver COMMAND --help' explains each command.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"mapserver {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("process", help="process bundle directories once")
-    p.add_argument("--config", type=Path, default=None)
-    p.add_argument("--outbox", type=Path, default=None, help="where results go (default: config)")
-    p.add_argument("bundles", nargs="+", metavar="BUNDLE_DIR")
-    p.set_defaults(func=_cmd_process)
-
-    p = sub.add_parser("check-config", help="validate a configuration and print the effective one")
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_check_config)
-
-    p = sub.add_parser("run", help="watch the inbox and process bundles until SIGTERM/SIGINT")
-    p.add_argument("--config", type=Path, default=None)
+    p = _command(
+        sub,
+        "run",
+        "the daemon: watch the inbox and process every bundle (until SIGTERM or Ctrl-C)",
+        "Watch the inbox, take each bundle once its upload is complete, process it in a pool of "
+        "worker processes, and write outbox/<id>/ (result.yaml, overlay.png, diff.png); the "
+        "bundle moves to archive/, or to failed/ with error.yaml saying why. One daemon per "
+        "inbox: a second one exits 1. SIGTERM or Ctrl-C finishes the bundles in hand and exits "
+        "0. Under systemd, use deploy/systemd/mapserver.service.",
+        "  mapserver run --config /etc/mapserver/mapserver.yaml",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser(
+    p = _command(
+        sub,
+        "status",
+        "is the daemon running; its queue, the last 24 h, the free space (exit 3: not running)",
+        "Say whether a daemon serves this configuration's inbox (and its pid), how many bundles "
+        "are uploading, queued and processing, the results and failures of the last 24 hours "
+        "(the failures with their reason), and the free space of each folder. Exit code 0 when "
+        "the daemon runs, 3 when it does not (for monitoring).",
+        "  mapserver status --config /etc/mapserver/mapserver.yaml || echo 'mapserver is down'",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.set_defaults(func=_cmd_status)
+
+    p = _command(
+        sub,
+        "process",
+        "process bundle folders once, without the daemon",
+        "Process each bundle folder given, write its result to the outbox (replacing an earlier "
+        "result of the same id, and saying so), and print one line per bundle and one per "
+        "difference. The bundles are left as they are. Exit code 0 when every bundle "
+        "succeeded, 1 otherwise (one error line per bundle that did not).",
+        "  mapserver process --outbox /tmp/results ~/bundles/run-0042 ~/bundles/run-0043",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument(
+        "--outbox",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="where results go (default: the configuration's outbox)",
+    )
+    p.add_argument("bundles", nargs="+", metavar="BUNDLE_DIR", help="a bundle folder")
+    p.set_defaults(func=_cmd_process)
+
+    p = _command(
+        sub,
+        "check-config",
+        "validate a configuration file and print every setting in effect",
+        "Read the configuration file, report every bad key or value (and a missing "
+        "reference_map) in one line, and print the effective settings, defaults included. Exit "
+        "code 1 when the file is wrong.",
+        "  mapserver check-config --config /etc/mapserver/mapserver.yaml",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.set_defaults(func=_cmd_check_config)
+
+    p = _command(
+        sub,
         "bundle",
-        help="write a bundle (robot side)",
-        description="Write a bundle directory with checksums. Give negative poses with '=': "
-        "--nav2-pose=-1.5,2.0,0.3",
+        "write a bundle folder on a robot, ready to upload",
+        "Copy the robot's SLAM map and (optionally) the map it navigated on into a new bundle "
+        "folder, with bundle.yaml: the pose in both frames, the trajectory, the sha256 of each "
+        "map file. The folder's name is the bundle id. Poses are x,y,yaw in metres and "
+        "radians; negative numbers are fine (--slam-pose -1.5,2,0).",
+        "  mapserver bundle --slam-map ~/maps/session.yaml --nav2-map /opt/maps/depot.yaml \\\n"
+        "      --nav2-pose 12.3,-4.5,1.5708 --slam-pose -0.8,0.1,0.02 -o run-0042",
     )
     p.add_argument("--slam-map", type=Path, required=True, help="slam_toolbox map YAML")
     p.add_argument("--nav2-map", type=Path, default=None, help="global map YAML (optional)")
@@ -449,7 +595,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_bundle)
 
-    p = sub.add_parser("demo", help="process the shipped sample bundles with a real daemon")
+    p = _command(
+        sub,
+        "demo",
+        "see it work: a real daemon on the shipped sample bundles",
+        "Make a demo folder, start the daemon on it, upload the shipped sample bundles the way "
+        "rsync does, print each result and where its files are, and stop the daemon.",
+        "  mapserver demo --dir /tmp/mapserver-demo",
+    )
     p.add_argument(
         "--dir",
         type=Path,
@@ -466,8 +619,44 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _join_negative_poses(argv: list[str], options: set[str]) -> list[str]:
+    """``--nav2-pose -1,2,0`` as ``--nav2-pose=-1,2,0``: argparse takes a value that starts
+    with '-' (and is not one plain number) for an option."""
+    out: list[str] = []
+    args = iter(argv)
+    for arg in args:
+        if arg == "--":
+            out += [arg, *args]
+            break
+        if arg in options:
+            value = next(args, None)
+            if value is not None and re.match(r"-[0-9.]", value):
+                out.append(f"{arg}={value}")
+                continue
+            out.append(arg)
+            if value is not None:
+                out.append(value)
+            continue
+        out.append(arg)
+    return out
+
+
+def _pose_options(parser: argparse.ArgumentParser) -> set[str]:
+    """The option strings, in every subcommand, whose value is a pose."""
+    found = set()
+    for action in parser._actions:  # argparse has no public walk of its parsers
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                found |= _pose_options(subparser)
+        elif action.type is _pose_arg:
+            found.update(action.option_strings)
+    return found
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    raw = list(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(_join_negative_poses(raw, _pose_options(parser)))
     try:
         return int(args.func(args))
     except MapserverError as error:

@@ -4,12 +4,17 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from daemon_support import make_bundle
+import yaml
+from daemon_support import Daemon, layout, make_bundle, upload, wait_until
+from daemon_support import write_config as write_daemon_config
 
+import mapserver
 from mapserver.cli import main
 from mapserver.config import parse_config
 from mapserver.lock import daemon_lock
@@ -95,3 +100,127 @@ def test_a_misspelt_reference_map_stops_run_and_check_config_at_once(
         assert main([command, "--config", str(config_file)]) == 1
         assert capsys.readouterr().err == expected
     assert not (tmp_path / "inbox").exists()  # run stopped before it made anything
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out == f"mapserver {mapserver.__version__}\n"
+
+
+@pytest.mark.parametrize(
+    "command", ["run", "status", "process", "check-config", "bundle", "demo", None]
+)
+def test_every_help_is_written_for_an_operator_and_ends_with_an_example(
+    command: str | None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit):
+        main([command, "--help"] if command else ["--help"])
+    text = capsys.readouterr().out
+    assert "example" in text
+    example = text.split("example", 1)[1]
+    assert f"mapserver {command or ''}".strip() in example
+    for developer_words in ("thin layer", "configures logging", "docstring"):
+        assert developer_words not in text
+
+
+def test_a_pose_may_be_typed_with_a_minus_and_no_equals_sign(tmp_path: Path) -> None:
+    source = make_bundle(tmp_path / "src")
+    out = tmp_path / "run-7"
+    args = ["bundle", "--slam-map", str(source / "slam_map.yaml"), "--robot", "r1"]
+    args += ["--nav2-pose", "-1,2,0", "--slam-pose", "-.5,-0.25,-1e-3", "-o", str(out)]
+    assert main(args) == 0
+    pose = yaml.safe_load((out / "bundle.yaml").read_text())["pose"]
+    assert pose == {
+        "nav2": {"x": -1.0, "y": 2.0, "yaw": 0.0},
+        "slam": {"x": -0.5, "y": -0.25, "yaw": -0.001},
+    }
+
+
+def test_process_prints_each_difference_and_says_when_it_replaced_a_result(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bundle = make_bundle(tmp_path / "run-1")
+    out = tmp_path / "out"
+    for replaced in (False, True):
+        assert main(["process", "--outbox", str(out), str(bundle)]) == 0
+        lines = [line for line in capsys.readouterr().out.splitlines() if "INFO" not in line]
+        result = yaml.safe_load((out / "run-1" / "result.yaml").read_text())
+        [difference] = result["differences"]
+        note = " (replaced the earlier result)" if replaced else ""
+        c = difference["centroid"]
+        assert lines[0] == f"run-1: 1 differences -> {out / 'run-1' / 'result.yaml'}{note}"
+        assert lines[1].startswith(
+            f"  1. added   {difference['area_m2']:7.2f} m2 at x={c['x']:.2f} y={c['y']:.2f}  (box x "
+        )
+        assert len(lines) == 2
+
+
+def test_the_built_in_configuration_never_makes_folders_here_unseen(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MAPSERVER_CONFIG", raising=False)
+    assert main(["run"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapserver: error: no configuration given (--config FILE, ")
+    assert f"no inbox/ in the current directory {tmp_path}" in err
+    assert list(tmp_path.iterdir()) == []
+    bundle = make_bundle(tmp_path / "src" / "run-1")
+    assert main(["process", str(bundle)]) == 0
+    assert capsys.readouterr().err == (
+        f"mapserver: results go to {tmp_path / 'outbox'} (the built-in default; choose with "
+        "--outbox DIR or --config FILE)\n"
+    )
+    assert main(["process", str(bundle)]) == 0  # it is there now, and the results say where
+    assert capsys.readouterr().err == ""
+
+
+def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None:
+    good = make_bundle(tmp_path / "src" / "good")
+    bad = make_bundle(tmp_path / "src" / "bad", seed=1, checksums=False)
+    (bad / "slam_map.pgm").write_bytes(b"P5\n100 100\n255\n")
+    config = write_daemon_config(tmp_path, workers=1)
+    dirs = layout(tmp_path)
+
+    def status() -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-m", "mapserver.cli", "status", "--config", str(config)]
+        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+    with Daemon(config) as daemon:
+        daemon.wait_ready()
+        upload(good, dirs["inbox"])
+        upload(bad, dirs["inbox"])
+        (dirs["inbox"] / "half").mkdir()  # an upload that has not finished
+        wait_until(
+            lambda: (
+                (dirs["archive"] / "good").is_dir()
+                and (dirs["failed"] / "bad" / "error.yaml").is_file()
+            ),
+            timeout=30,
+            what="both decided",
+        )
+        wait_until(
+            lambda: yaml.safe_load((dirs["inbox"] / ".mapserver.status").read_text())["failed"],
+            timeout=10,
+            what="the daemon's status file",
+        )
+        running = status()
+        assert daemon.stop() == 0
+    assert running.returncode == 0, running.stderr
+    lines = running.stdout.splitlines()
+    assert lines[0].startswith(f"daemon:    running, pid {daemon.process.pid}, since 20")
+    assert lines[1].startswith("queue:     1 uploading, 0 queued, 0 processing (the daemon's ")
+    assert lines[2] == "last 24 h: 1 results, 1 failed"
+    assert lines[3].startswith("  failed bad at 20") and ", stage load: slam_map.pgm: " in lines[3]
+    assert lines[4] == "free space:"
+    for name, line in zip(["inbox", "outbox", "archive", "failed"], lines[5:], strict=True):
+        assert line.startswith(f"  {name:<8} {dirs[name]}") and " GiB free of " in line
+
+    stopped = status()
+    assert stopped.returncode == 3, stopped.stderr
+    lines = stopped.stdout.splitlines()
+    assert lines[0] == f"daemon:    not running (no mapserver run holds {dirs['inbox']})"
+    assert lines[1] == "queue:     1 uploading, 0 queued, 0 processing"
+    assert lines[2] == "last 24 h: 1 results, 1 failed"
