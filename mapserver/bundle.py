@@ -300,14 +300,17 @@ def check_bundle_files(
         if not image_path.is_file():
             raise BundleIncomplete(f"map image '{image_name}' is not there yet", file=yaml_path)
         yamls[key], images[key] = yaml_path, image_path
+    checksummed = []
     for name, expected in (manifest.checksums or {}).items():
         path = safe_member(bundle_dir, name, what="checksummed file", source=source)
         if not path.is_file():
             raise BundleIncomplete(f"checksummed file '{name}' is not there yet", file=source)
-        if verify_checksums:
-            actual = sha256_file(path)
-            if actual != expected.lower():
-                raise ChecksumMismatch(name, expected=expected.lower(), actual=actual, file=path)
+        checksummed.append((name, expected.lower(), path))
+    # Hashed once every file is there: a ChecksumMismatch means a bundle with nothing missing.
+    for name, expected, path in checksummed if verify_checksums else []:
+        actual = sha256_file(path)
+        if actual != expected:
+            raise ChecksumMismatch(name, expected=expected, actual=actual, file=path)
     slam_yaml, slam_image = yamls["slam"], images["slam"]
     assert slam_yaml is not None and slam_image is not None
     return BundleFiles(manifest, slam_yaml, slam_image, yamls["nav2"], images["nav2"])

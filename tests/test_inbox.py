@@ -377,3 +377,19 @@ def test_a_folder_of_bundles_is_not_a_bundle_and_is_rejected_at_once(tmp_path: P
         "runs: not a bundle: no bundle.yaml in it; it holds 2 bundle folders (run-1, run-2); "
         "upload each bundle folder directly into the inbox"
     )
+
+
+def test_a_mismatch_while_a_file_is_still_missing_waits_like_any_incomplete_upload(
+    tmp_path: Path,
+) -> None:
+    clock = Clock()
+    t = tracker(tmp_path, clock, settle=2.0, stale=600.0)
+    bundle = make_bundle(tmp_path / "run-1")
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    manifest["checksums"]["notes.txt"] = "0" * 64  # listed last, still to come
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    (bundle / "nav2_map.pgm").write_bytes(b"P5\n1 1\n255\n\x00")  # listed first: no match
+    t.touch("run-1")
+    clock.now = 102.0
+    assert t.poll() == []
+    assert t.next_deadline() == 700.0  # stale_after_seconds: the upload is not over
