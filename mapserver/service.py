@@ -166,11 +166,11 @@ def _init_worker(
     _WORKER.board = board
     _WORKER.memory_limit_mb = memory_limit_mb
     _WORKER.faults = _parse_faults(os.environ.get(FAULT_ENV, ""))
-    if memory_limit_mb:
-        _limit_address_space(memory_limit_mb)
     on_stage(_entered_stage)
     if setup is not None:
         setup()
+    if memory_limit_mb:
+        _limit_address_space(memory_limit_mb)
 
 
 def _limit_address_space(limit_mb: int) -> None:
@@ -187,7 +187,10 @@ def _limit_address_space(limit_mb: int) -> None:
     limit = mapped + limit_mb * 2**20
     if hard != resource.RLIM_INFINITY:
         limit = min(limit, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    except OSError as error:  # a seccomp filter without prlimit64, say: the watch remains
+        log.warning("worker %d: cannot limit its address space: %s", os.getpid(), error)
 
 
 def _entered_stage(name: str) -> None:
