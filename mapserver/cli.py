@@ -23,6 +23,8 @@ import yaml
 
 from mapserver.config import dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
+from mapserver.fleet.cli import open_store
+from mapserver.fleet.cli import register as register_fleet_commands
 
 log = logging.getLogger("mapserver")
 
@@ -48,21 +50,46 @@ def _cmd_process(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     _setup_logging(config.log_level)
     outbox = Path(args.outbox).resolve() if args.outbox else config.outbox
+    store = open_store(config, create=True) if config.maps is not None else None
     failures = 0
-    for bundle in args.bundles:
-        bundle_dir = Path(bundle)
-        try:
-            if not bundle_dir.is_dir():
-                raise MapserverError("not a bundle directory", file=bundle_dir, stage="bundle")
-            outcome = process_bundle(bundle_dir, config)
-            final = write_result(outbox, outcome)
-        except MapserverError as error:
-            failures += 1
-            sys.stderr.write(f"mapserver: error: {error.reason}\n")
-            continue
-        n = len(outcome.result.get("differences", []))
-        sys.stdout.write(f"{outcome.bundle_id}: {n} differences -> {final / 'result.yaml'}\n")
+    try:
+        # The fleet map counts bundles in stamp order: process them in that order.
+        for bundle_dir in _by_stamp([Path(b) for b in args.bundles]):
+            try:
+                if not bundle_dir.is_dir():
+                    raise MapserverError("not a bundle directory", file=bundle_dir, stage="bundle")
+                outcome = process_bundle(bundle_dir, config)
+                if store is not None and outcome.observation is not None:
+                    update = store.apply(outcome.observation)
+                    update.annotate(outcome.result)
+                    log.info("%s: update %s", outcome.bundle_id, update.summary())
+                final = write_result(outbox, outcome)
+            except MapserverError as error:
+                failures += 1
+                sys.stderr.write(f"mapserver: error: {error.reason}\n")
+                continue
+            n = len(outcome.result.get("differences", []))
+            sys.stdout.write(f"{outcome.bundle_id}: {n} differences -> {final / 'result.yaml'}\n")
+    finally:
+        if store is not None:
+            store.close()
     return 1 if failures else 0
+
+
+def _by_stamp(bundles: list[Path]) -> list[Path]:
+    """Bundles sorted by their manifest's stamp (stable; unreadable ones keep their place at
+    the end, where processing reports what is wrong with them)."""
+    from mapserver.bundle import read_manifest
+    from mapserver.fleet.tracker import parse_stamp
+
+    def key(item: tuple[int, Path]) -> tuple[int, float, int]:
+        index, path = item
+        try:
+            return (0, parse_stamp(read_manifest(path).stamp).timestamp(), index)
+        except (MapserverError, OSError, ValueError):
+            return (1, 0.0, index)
+
+    return [p for _, p in sorted(enumerate(bundles), key=key)]
 
 
 # -- mapserver run ---------------------------------------------------------------------------
@@ -431,6 +458,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the bundle directory to create; its name is the bundle id",
     )
     p.set_defaults(func=_cmd_bundle)
+
+    register_fleet_commands(sub)
 
     p = sub.add_parser("demo", help="process the shipped sample bundles with a real daemon")
     p.add_argument(

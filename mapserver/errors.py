@@ -9,6 +9,7 @@ enough context (the stage, the file, the field) to write one line a person can a
     ``BundleError``      -- a bundle manifest or its files are wrong (bad field, checksum, path).
         ``BundleIncomplete`` -- not an error yet: some file is missing or still changing.
     ``ProcessingError``  -- the pipeline failed on otherwise valid input.
+    ``StoreError``       -- the map store refused an operation or cannot be used.
 """
 
 from __future__ import annotations
@@ -66,6 +67,13 @@ class BundleIncomplete(BundleError):
 
 class ProcessingError(MapserverError):
     default_stage = "process"
+
+
+class StoreError(MapserverError):
+    """The map store (contract section 7) refused an operation (an unknown map or change, a
+    change not in a state that allows it) or cannot be used (its database missing or damaged)."""
+
+    default_stage = "update"
 
 
 def describe_validation(error: ValidationError) -> str:

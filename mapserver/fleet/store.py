@@ -1,0 +1,1082 @@
+"""The map store: building maps, their versions, the evidence of every bundle and the tracked
+changes (contract section 7).
+
+One process writes (the daemon's main process, or one ``mapserver`` command); workers only read
+(:func:`lookup`). Applying a bundle is one ``BEGIN IMMEDIATE`` transaction that also records
+that the bundle was applied, so a bundle counts once whatever crashes or repeated uploads
+happen. Files (versions, ``current.yaml``, the keepout mask, ``changes.yaml``) are written by
+rename and derived from the database; :meth:`FleetStore.sync` writes them again from it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import shutil
+import sqlite3
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import timedelta, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from mapserver.bundle import BUNDLE_ID_RE, map_image_name, sha256_file
+from mapserver.config import UpdateConfig
+from mapserver.errors import StoreError
+from mapserver.fleet import evidence, publish, tracker
+from mapserver.fleet.db import connect, connect_readonly, transaction
+from mapserver.fleet.lattice import IntArray, Lattice
+from mapserver.fleet.observe import Observation
+from mapserver.fsio import replace_atomic
+from mapserver.maps import FREE, OCCUPIED, load_map
+
+log = logging.getLogger(__name__)
+
+STATES = ("pending", "confirmed", "published", "rejected", "expired")
+# A found difference and a tracked change are one when their cells come this close (metres):
+# DBSCAN's own neighbourhood, so that what one bundle would cluster together stays one change.
+_MATCH_M = 0.3
+# A bundle that sees an added obstacle this far off (metres) still shows it (not "as before").
+_JUDGE_TOLERANCE_M = 0.2
+
+
+def _utc(stamp: str) -> str:
+    """A stamp normalised to UTC ``YYYY-MM-DDTHH:MM:SSZ`` (sortable as text)."""
+    value = tracker.parse_stamp(stamp).astimezone(timezone.utc)
+    text = value.isoformat(timespec="seconds" if value.microsecond == 0 else "milliseconds")
+    return text.replace("+00:00", "Z")
+
+
+def _now() -> str:
+    from mapserver.outbox import utc_now
+
+    return utc_now()
+
+
+@dataclass(frozen=True)
+class VersionInfo:
+    map: str
+    version: int
+    created_at: str
+    yaml: Path
+    sha256: str
+    note: str
+    changes: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    name: str
+    current_version: int
+    lattice: Lattice
+    origin_yaw: float
+    created_at: str
+    counts: dict[str, int]
+    bundles: int
+
+
+@dataclass(frozen=True)
+class ChangeInfo:
+    """One tracked change as ``changes.yaml`` shows it."""
+
+    id: int
+    map: str
+    kind: str
+    state: str
+    polygon: list[list[float]]
+    first_seen: str
+    last_seen: str
+    sessions: int
+    contradicted: int
+    robots: list[str]
+    bundles: list[str]
+    version: int | None
+    note: str
+
+    def document(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "state": self.state,
+            "polygon": self.polygon,
+            "first_seen": self.first_seen,
+            "last_seen": self.last_seen,
+            "sessions": self.sessions,
+            "contradicted": self.contradicted,
+            "robots": self.robots,
+            "bundles": self.bundles,
+            "version": self.version,
+        }
+
+
+@dataclass(frozen=True)
+class Update:
+    """What applying one bundle did to the store (plain data, for result.yaml and the logs)."""
+
+    map: str
+    bundle_version: int
+    current_version: int
+    changes: tuple[int | None, ...]
+    """The tracked change of each difference of the bundle's result, in its order."""
+    repeated: bool = False
+    """The bundle had been applied before: nothing was counted again."""
+    created: tuple[int, ...] = ()
+    supported: tuple[int, ...] = ()
+    expired: tuple[int, ...] = ()
+    confirmed: tuple[int, ...] = ()
+    published: tuple[int, ...] = ()
+    new_version: int | None = None
+    warnings: tuple[str, ...] = ()
+    seconds: float = 0.0
+
+    def annotate(self, result: dict[str, Any]) -> None:
+        """Add what the store made of the bundle to its ``result.yaml`` document: the map's name
+        and version (the one the robot navigated on) and the current version, each difference's
+        tracked change, the update's time, and its warnings."""
+        result.setdefault("map", {}).update(
+            {
+                "name": self.map,
+                "version": self.bundle_version,
+                "current_version": self.current_version,
+            }
+        )
+        for difference, change in zip(result.get("differences") or [], self.changes, strict=False):
+            difference["change"] = change
+        result.setdefault("timings_ms", {})["update"] = round(self.seconds * 1000.0, 1)
+        if self.warnings:
+            result.setdefault("warnings", []).extend(self.warnings)
+
+    def summary(self) -> str:
+        parts = [f"map {self.map} v{self.current_version}"]
+        if self.repeated:
+            parts.append("already applied")
+        for name in ("created", "supported", "expired", "confirmed", "published"):
+            ids = getattr(self, name)
+            if ids:
+                parts.append(f"{name} {', '.join(str(i) for i in ids)}")
+        if self.new_version is not None:
+            parts.append(f"published version {self.new_version}")
+        return "; ".join(parts)
+
+
+@dataclass(frozen=True)
+class MapLink:
+    """What a worker needs to judge a bundle against the current version of its stored map."""
+
+    name: str
+    lattice: Lattice
+    bundle_version: int
+    current_version: int
+    current_yaml: Path
+
+
+@dataclass
+class _Change:
+    id: int
+    kind: str
+    state: str
+    version: int | None
+    first_seen: str
+    last_seen: str
+    sessions: int
+    contradicted: int
+    last_observed: str
+    latest_shows: bool
+    cells: IntArray
+    hits: NDArray[np.int64]
+    touched: bool = False
+    merged: list[int] = field(default_factory=list)
+
+
+def lookup(root: Path, image_sha256: str) -> MapLink | None:
+    """The stored map one of whose versions has this image (sha256), read-only; None if none.
+
+    Run by the workers: they judge a bundle against the map's current version.
+    """
+    conn = connect_readonly(root)
+    if conn is None:
+        return None
+    try:
+        row = conn.execute(
+            "SELECT m.id, m.name, m.width, m.height, m.resolution, m.origin_x, m.origin_y, "
+            "v.version FROM versions v JOIN maps m ON m.id = v.map_id WHERE v.sha256 = ? "
+            "ORDER BY v.version LIMIT 1",
+            (image_sha256.lower(),),
+        ).fetchone()
+        if row is None:
+            return None
+        map_id, name, width, height, res, ox, oy, version = row
+        current, current_yaml = conn.execute(
+            "SELECT version, yaml FROM versions WHERE map_id = ? ORDER BY version DESC LIMIT 1",
+            (map_id,),
+        ).fetchone()
+    except sqlite3.DatabaseError as error:
+        raise StoreError(f"cannot read the map store: {error}", file=root) from None
+    finally:
+        conn.close()
+    return MapLink(
+        name, Lattice(width, height, res, ox, oy), version, current, root / name / current_yaml
+    )
+
+
+class FleetStore:
+    """The map store at ``root`` (the configuration's ``maps:``), with the update settings.
+
+    Opening it checks the database (missing while maps exist, unreadable, damaged: a
+    :class:`StoreError` that says how to recover).
+    """
+
+    def __init__(self, root: Path, settings: UpdateConfig | None = None, *, create: bool = True):
+        self.root = Path(root)
+        self.settings = settings or UpdateConfig()
+        self.rule = tracker.Persistence(
+            self.settings.confirm_sessions, self.settings.confirm_span_hours
+        )
+        self._conn = connect(self.root, create=create)
+        self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> FleetStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- maps and versions ------------------------------------------------------------------
+
+    def add_map(self, name: str, map_yaml: Path, *, max_pixels: int = 100_000_000) -> VersionInfo:
+        """Register a building map as version 1 of ``name``. The map must load; nothing is
+        created otherwise. Its image is kept byte for byte (bundles match it by sha256)."""
+        if not BUNDLE_ID_RE.fullmatch(name):
+            raise StoreError(
+                f"invalid map name {name!r}: use letters, digits, '.', '_' and '-', starting "
+                "with a letter or digit"
+            )
+        if self._map_row(name, missing_ok=True) is not None:
+            raise StoreError(
+                f"a map named {name!r} is already in the store (see 'mapserver maps show {name}')"
+            )
+        map_yaml = Path(map_yaml)
+        m = load_map(map_yaml, max_pixels=max_pixels)  # MapFileError with the loader's message
+        image = map_yaml.parent / map_image_name(map_yaml)
+        document = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
+        folder = self.root / name
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = publish.version_stem(1)
+        image_dst = folder / f"{stem}{image.suffix.lower() or '.pgm'}"
+        tmp = folder / f".{image_dst.name}.tmp"
+        shutil.copyfile(image, tmp)
+        replace_atomic(image_dst, tmp.read_bytes())
+        tmp.unlink()
+        document["image"] = image_dst.name
+        yaml_dst = folder / f"{stem}.yaml"
+        replace_atomic(yaml_dst, yaml.safe_dump(document, sort_keys=False).encode())
+        digest = sha256_file(image_dst)
+        now = _now()
+        lattice = Lattice.of_map(m)
+        with transaction(self._conn):
+            cur = self._conn.execute(
+                "INSERT INTO maps (name, width, height, resolution, origin_x, origin_y, "
+                "origin_yaw, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (name, m.width, m.height, m.resolution, m.origin[0], m.origin[1], m.origin[2], now),
+            )
+            self._conn.execute(
+                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
+                "VALUES (?, 1, ?, ?, ?, ?, ?)",
+                (
+                    cur.lastrowid,
+                    now,
+                    yaml_dst.name,
+                    image_dst.name,
+                    digest,
+                    f"added from {map_yaml}",
+                ),
+            )
+        self._write_derived(name)
+        log.info(
+            "map %s: version 1 from %s (%dx%d cells at %.3f m)",
+            name,
+            map_yaml,
+            lattice.width,
+            lattice.height,
+            lattice.resolution,
+        )
+        return self.versions(name)[0]
+
+    def maps(self) -> list[MapInfo]:
+        return [
+            self.map_info(row[0])
+            for row in self._conn.execute("SELECT name FROM maps ORDER BY name")
+        ]
+
+    def map_info(self, name: str) -> MapInfo:
+        map_id, lattice, yaw, created = self._map(name)
+        counts = dict.fromkeys(STATES, 0)
+        for state, n in self._conn.execute(
+            "SELECT state, count(*) FROM changes WHERE map_id = ? GROUP BY state", (map_id,)
+        ):
+            counts[state] = n
+        bundles = self._conn.execute(
+            "SELECT count(*) FROM bundles WHERE map_id = ?", (map_id,)
+        ).fetchone()[0]
+        return MapInfo(name, self._current_version(map_id), lattice, yaw, created, counts, bundles)
+
+    def versions(self, name: str) -> list[VersionInfo]:
+        map_id = self._map(name)[0]
+        published: dict[int, list[int]] = {}
+        for cid, version in self._conn.execute(
+            "SELECT id, version FROM changes WHERE map_id = ? AND version IS NOT NULL ORDER BY id",
+            (map_id,),
+        ):
+            published.setdefault(version, []).append(cid)
+        return [
+            VersionInfo(
+                name, v, created, self.root / name / y, sha, note, tuple(published.get(v, ()))
+            )
+            for v, created, y, sha, note in self._conn.execute(
+                "SELECT version, created_at, yaml, sha256, note FROM versions WHERE map_id = ? "
+                "ORDER BY version",
+                (map_id,),
+            )
+        ]
+
+    def rollback(self, name: str, version: int) -> VersionInfo:
+        """Publish a NEW version equal to ``version``; history is never rewritten. Changes
+        published after it are no longer in the map: they become ``rejected`` (an operator
+        undid them), so that the same sightings do not publish them again."""
+        map_id, lattice, yaw, _ = self._map(name)
+        row = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()
+        if row is None:
+            known = self._current_version(map_id)
+            raise StoreError(f"map {name!r} has no version {version} (versions 1..{known})")
+        state = load_map(self.root / name / row[0]).state
+        undone = [
+            r[0]
+            for r in self._conn.execute(
+                "SELECT id FROM changes WHERE map_id = ? AND state = 'published' AND version > ?",
+                (map_id, version),
+            )
+        ]
+        new = self._publish_state(
+            map_id, name, lattice, yaw, state, f"rollback to version {version}", undone=undone
+        )
+        self._write_derived(name)
+        return next(v for v in self.versions(name) if v.version == new)
+
+    # -- changes ----------------------------------------------------------------------------
+
+    def changes(self, name: str | None = None, *, state: str | None = None) -> list[ChangeInfo]:
+        if state is not None and state not in STATES:
+            raise StoreError(f"unknown state {state!r}: use one of {', '.join(STATES)}")
+        sql = (
+            "SELECT c.id, m.name, c.kind, c.state, c.polygon, c.first_seen, c.last_seen, "
+            "c.sessions, c.contradicted, c.version, c.note FROM changes c "
+            "JOIN maps m ON m.id = c.map_id WHERE 1 = 1"
+        )
+        args: list[Any] = []
+        if name is not None:
+            sql += " AND c.map_id = ?"
+            args.append(self._map(name)[0])
+        if state is not None:
+            sql += " AND c.state = ?"
+            args.append(state)
+        rows = self._conn.execute(sql + " ORDER BY c.id", args).fetchall()
+        sightings: dict[int, list[tuple[str, str, str]]] = {}
+        ids = [r[0] for r in rows]
+        for chunk in range(0, len(ids), 500):
+            part = ids[chunk : chunk + 500]
+            q = ",".join("?" * len(part))
+            for cid, bundle, robot, stamp in self._conn.execute(
+                f"SELECT change_id, bundle_id, robot, stamp FROM sightings WHERE change_id IN ({q})",
+                part,
+            ):
+                sightings.setdefault(cid, []).append((stamp, bundle, robot))
+        out = []
+        for cid, map_name, kind, st, poly, first, last, sessions, contra, version, note in rows:
+            seen = sorted(sightings.get(cid, []))
+            out.append(
+                ChangeInfo(
+                    cid,
+                    map_name,
+                    kind,
+                    st,
+                    json.loads(poly),
+                    first,
+                    last,
+                    sessions,
+                    contra,
+                    sorted({r for _, _, r in seen}),
+                    [b for _, b, _ in seen],
+                    version,
+                    note,
+                )
+            )
+        return out
+
+    def change(self, change_id: int) -> ChangeInfo:
+        change_id = self._resolve_merged(change_id)
+        row = self._conn.execute(
+            "SELECT m.name FROM changes c JOIN maps m ON m.id = c.map_id WHERE c.id = ?",
+            (change_id,),
+        ).fetchone()
+        if row is None:
+            raise StoreError(f"no change {change_id} in the store (see 'mapserver changes list')")
+        return next(c for c in self.changes(row[0]) if c.id == change_id)
+
+    def approve(self, change_id: int) -> VersionInfo:
+        """Publish a confirmed change (review mode): a new version with it."""
+        info = self.change(change_id)
+        if info.state != "confirmed":
+            raise StoreError(
+                f"change {change_id} is {info.state}, not confirmed: only a confirmed change "
+                "can be approved"
+                + (
+                    " (it is still pending: more sessions must see it)"
+                    if info.state == "pending"
+                    else ""
+                )
+            )
+        map_id, lattice, yaw, _ = self._map(info.map)
+        version = self._publish_changes(
+            map_id, info.map, lattice, yaw, [change_id], note=f"approved change {change_id}"
+        )
+        self._write_derived(info.map)
+        return next(v for v in self.versions(info.map) if v.version == version)
+
+    def reject(self, change_id: int) -> ChangeInfo:
+        """Reject a pending or confirmed change: it is never published, and later sightings of
+        the same thing are counted on it instead of starting a new change."""
+        info = self.change(change_id)
+        if info.state not in ("pending", "confirmed"):
+            raise StoreError(
+                f"change {change_id} is {info.state}: only a pending or confirmed change can be rejected"
+            )
+        with transaction(self._conn):
+            self._conn.execute(
+                "UPDATE changes SET state = 'rejected', note = 'rejected by an operator', updated_at = ? WHERE id = ?",
+                (_now(), change_id),
+            )
+        self._write_derived(info.map)
+        return self.change(change_id)
+
+    # -- bundles ----------------------------------------------------------------------------
+
+    def apply(self, obs: Observation) -> Update:
+        """Apply one bundle's observation: evidence, tracked changes, the persistence rule, and
+        in auto mode the publication of what it confirmed. Once per bundle (fingerprint)."""
+        start = time.perf_counter()
+        stamp = _utc(obs.stamp)
+        map_id, lattice, yaw, _ = self._map(obs.map_name)
+        with transaction(self._conn):
+            row = self._conn.execute(
+                "SELECT outcome FROM bundles WHERE fingerprint = ?", (obs.fingerprint,)
+            ).fetchone()
+            if row is not None:
+                done = json.loads(row[0])
+                return Update(
+                    obs.map_name,
+                    obs.bundle_version,
+                    self._current_version(map_id),
+                    tuple(done["changes"]),
+                    repeated=True,
+                    seconds=time.perf_counter() - start,
+                )
+            hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
+            evidence.add_observation(self._conn, map_id, obs.window, obs.occupied, obs.free, hour)
+            outcome = self._track(map_id, lattice, obs, stamp)
+            self._conn.execute(
+                "INSERT INTO bundles (fingerprint, bundle_id, map_id, robot, stamp, applied_at, "
+                "judged_version, outcome) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    obs.fingerprint,
+                    obs.bundle_id,
+                    map_id,
+                    obs.robot,
+                    stamp,
+                    _now(),
+                    obs.judged_version,
+                    json.dumps(outcome),
+                ),
+            )
+        new_version = None
+        published: list[int] = []
+        warnings: list[str] = []
+        if self.settings.mode == "auto":
+            try:
+                published = self._confirmed_ids(map_id)
+                if published:
+                    new_version = self._publish_changes(
+                        map_id,
+                        obs.map_name,
+                        lattice,
+                        yaw,
+                        published,
+                        note=f"confirmed by {obs.bundle_id}",
+                    )
+            except OSError as error:
+                published = []
+                warnings.append(
+                    f"map {obs.map_name}: cannot publish a new version now ({error}); the confirmed changes wait"
+                )
+                log.error(
+                    "%s: cannot publish a new version of %s: %s", obs.bundle_id, obs.map_name, error
+                )
+        try:
+            self._write_derived(obs.map_name)
+        except OSError as error:
+            warnings.append(f"map {obs.map_name}: cannot rewrite changes.yaml / keepout ({error})")
+            log.error(
+                "%s: cannot write the files of map %s: %s", obs.bundle_id, obs.map_name, error
+            )
+        return Update(
+            obs.map_name,
+            obs.bundle_version,
+            self._current_version(map_id),
+            tuple(outcome["changes"]),
+            created=tuple(outcome["created"]),
+            supported=tuple(outcome["supported"]),
+            expired=tuple(outcome["expired"]),
+            confirmed=tuple(outcome["confirmed"]),
+            published=tuple(published),
+            new_version=new_version,
+            warnings=tuple(warnings),
+            seconds=time.perf_counter() - start,
+        )
+
+    def sync(self) -> None:
+        """Bring the files in line with the database (after a crash between a commit and the
+        files, or a publication that failed on a full disk): publish what auto mode has
+        confirmed, then write current.yaml, the keepout mask and changes.yaml of every map."""
+        for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
+            map_id, lattice, yaw, _ = self._map(name)
+            if self.settings.mode == "auto":
+                ids = self._confirmed_ids(map_id)
+                if ids:
+                    self._publish_changes(map_id, name, lattice, yaw, ids, note="confirmed earlier")
+            self._write_derived(name, force=True)
+
+    # -- the tracker ------------------------------------------------------------------------
+
+    def _track(self, map_id: int, lattice: Lattice, obs: Observation, stamp: str) -> dict[str, Any]:
+        res = lattice.resolution
+        radius = max(1, round(_MATCH_M / res))
+        win = obs.window
+        live = self._load_changes(map_id, lattice, win, margin=radius)
+        by_id = {c.id: c for c in live}
+        created: list[int] = []
+        # 1. Every difference found against the current version: one tracked change each.
+        assigned: dict[int, list[IntArray]] = {}
+        new: list[tuple[str, IntArray]] = []
+        for found in obs.found:
+            cands = [
+                c
+                for c in live
+                if c.kind == found.kind
+                and (
+                    c.state in ("pending", "confirmed", "rejected")
+                    or (c.state == "published" and (c.version or 0) > obs.judged_version)
+                )
+                and tracker.overlap(found.cells, c.cells, lattice, radius) > 0
+            ]
+            if not cands:
+                new.append((found.kind, found.cells))
+                continue
+            absorbing = [c for c in cands if c.state in ("rejected", "published")]
+            if absorbing:
+                target = absorbing[0]
+            else:
+                target = min(cands, key=lambda c: c.id)
+                for other in cands:
+                    if other.id != target.id and other.id in by_id:
+                        self._merge(target, other)
+                        live.remove(other)
+                        del by_id[other.id]
+                        if other.id in assigned:
+                            assigned.setdefault(target.id, []).extend(assigned.pop(other.id))
+            assigned.setdefault(target.id, []).append(found.cells)
+        # Near new differences of one kind in one bundle stay separate changes, as DBSCAN made them.
+        for kind, cells in new:
+            created.append(self._create(map_id, lattice, kind, cells, obs, stamp))
+        supported = []
+        for cid, parts in assigned.items():
+            c = by_id[cid]
+            if c.state == "published":
+                continue  # judged against an older version: already in the map
+            self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
+            supported.append(cid)
+        # 2. Changes this bundle observed without finding them: shown, or as before?
+        expired = []
+        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
+        for c in live:
+            if c.id in assigned or c.state not in ("pending", "confirmed"):
+                continue
+            verdict = tracker.judge(
+                c.kind,
+                tracker.core_cells(c.cells, c.hits),
+                lattice,
+                win,
+                obs.occupied,
+                obs.free,
+                tolerance_px=tol,
+            )
+            if verdict == "as_before":
+                later = stamp >= c.last_observed
+                self._conn.execute(
+                    "UPDATE changes SET contradicted = contradicted + ?, "
+                    "last_observed = CASE WHEN ? THEN ? ELSE last_observed END, "
+                    "latest_shows = CASE WHEN ? THEN 0 ELSE latest_shows END, "
+                    "state = CASE WHEN ? THEN 'expired' ELSE state END, "
+                    "note = CASE WHEN ? THEN ? ELSE note END, updated_at = ? WHERE id = ?",
+                    (
+                        int(stamp > c.first_seen),
+                        later,
+                        stamp,
+                        later,
+                        later,
+                        later,
+                        f"seen as before by {obs.bundle_id} ({obs.robot}, {stamp})",
+                        _now(),
+                        c.id,
+                    ),
+                )
+                if later:
+                    expired.append(c.id)
+            elif verdict == "shows" and stamp >= c.last_observed:
+                self._conn.execute(
+                    "UPDATE changes SET last_observed = ?, latest_shows = 1 WHERE id = ?",
+                    (stamp, c.id),
+                )
+        # 3. Pending changes nobody has observed for long expire.
+        limit = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
+        cutoff = _utc(limit.isoformat())
+        for (cid,) in self._conn.execute(
+            "SELECT id FROM changes WHERE map_id = ? AND state = 'pending' AND last_observed < ?",
+            (map_id, cutoff),
+        ).fetchall():
+            self._conn.execute(
+                "UPDATE changes SET state = 'expired', note = ?, updated_at = ? WHERE id = ?",
+                (f"not observed for {self.settings.expire_unseen_days:g} days", _now(), cid),
+            )
+            expired.append(cid)
+        # 4. The persistence rule.
+        confirmed = []
+        for cid in sorted(set(supported) | set(created)):
+            row = self._conn.execute(
+                "SELECT state, sessions, first_seen, last_seen, latest_shows FROM changes WHERE id = ?",
+                (cid,),
+            ).fetchone()
+            if row[0] == "pending" and tracker.confirmed(
+                self.rule,
+                sessions=row[1],
+                first_seen=row[2],
+                last_seen=row[3],
+                latest_shows=bool(row[4]),
+            ):
+                self._conn.execute(
+                    "UPDATE changes SET state = 'confirmed', updated_at = ? WHERE id = ?",
+                    (_now(), cid),
+                )
+                confirmed.append(cid)
+        # 5. Which change each difference of the bundle's own result is.
+        touched = set(supported) | set(created)
+        refs = self._load_changes(
+            map_id,
+            lattice,
+            win,
+            margin=radius,
+            states=("pending", "confirmed", "published", "rejected", "expired"),
+            ids=touched,
+        )
+        refs += [
+            c
+            for c in self._load_changes(
+                map_id, lattice, win, margin=radius, states=("published", "rejected")
+            )
+            if c.id not in touched
+        ]
+        result_changes: list[int | None] = []
+        for kind, cells in obs.result_cells:
+            best, best_n = None, 0
+            for c in refs:
+                if c.kind != kind:
+                    continue
+                n = tracker.overlap(cells, c.cells, lattice, radius)
+                if n > best_n or (
+                    n == best_n
+                    and n > 0
+                    and best is not None
+                    and c.id in touched
+                    and best not in touched
+                ):
+                    best, best_n = c.id, n
+            result_changes.append(best)
+        return {
+            "changes": result_changes,
+            "created": created,
+            "supported": sorted(supported),
+            "expired": sorted(expired),
+            "confirmed": confirmed,
+        }
+
+    def _load_changes(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        window: Any,
+        *,
+        margin: int,
+        states: Sequence[str] = ("pending", "confirmed", "published", "rejected"),
+        ids: Iterable[int] | None = None,
+    ) -> list[_Change]:
+        q = ",".join("?" * len(states))
+        sql = (
+            "SELECT id, kind, state, version, first_seen, last_seen, sessions, contradicted, "
+            f"last_observed, latest_shows FROM changes WHERE map_id = ? AND state IN ({q}) "
+            "AND row1 > ? AND row0 < ? AND col1 > ? AND col0 < ?"
+        )
+        args: list[Any] = [
+            map_id,
+            *states,
+            window.row0 - margin,
+            window.row0 + window.rows + margin,
+            window.col0 - margin,
+            window.col0 + window.cols + margin,
+        ]
+        if ids is not None:
+            wanted = sorted(ids)
+            if not wanted:
+                return []
+            sql += f" AND id IN ({','.join('?' * len(wanted))})"
+            args += wanted
+        out = []
+        for row in self._conn.execute(sql + " ORDER BY id", args).fetchall():
+            cells = np.array(
+                self._conn.execute(
+                    "SELECT cell, hits FROM change_cells WHERE change_id = ? ORDER BY cell",
+                    (row[0],),
+                ).fetchall(),
+                dtype=np.int64,
+            ).reshape(-1, 2)
+            out.append(
+                _Change(
+                    row[0],
+                    row[1],
+                    row[2],
+                    row[3],
+                    row[4],
+                    row[5],
+                    row[6],
+                    row[7],
+                    row[8],
+                    bool(row[9]),
+                    cells[:, 0],
+                    cells[:, 1],
+                )
+            )
+        return out
+
+    def _create(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        kind: str,
+        cells: IntArray,
+        obs: Observation,
+        stamp: str,
+    ) -> int:
+        rows, cols = lattice.unflat(cells)
+        cur = self._conn.execute(
+            "INSERT INTO changes (map_id, kind, state, first_seen, last_seen, sessions, "
+            "last_observed, latest_shows, row0, col0, row1, col1, polygon, updated_at) "
+            "VALUES (?, ?, 'pending', ?, ?, 1, ?, 1, ?, ?, ?, ?, ?, ?)",
+            (
+                map_id,
+                kind,
+                stamp,
+                stamp,
+                stamp,
+                int(rows.min()),
+                int(cols.min()),
+                int(rows.max()) + 1,
+                int(cols.max()) + 1,
+                json.dumps(lattice.outline(cells)),
+                _now(),
+            ),
+        )
+        cid = int(cur.lastrowid or 0)
+        self._conn.executemany(
+            "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1)",
+            ((cid, int(c)) for c in cells),
+        )
+        self._conn.execute(
+            "INSERT INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
+            (cid, obs.bundle_id, obs.robot, stamp),
+        )
+        return cid
+
+    def _support(
+        self, c: _Change, cells: IntArray, obs: Observation, stamp: str, lattice: Lattice
+    ) -> None:
+        cur = self._conn.execute(
+            "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
+            (c.id, obs.bundle_id, obs.robot, stamp),
+        )
+        if cur.rowcount == 0:
+            return  # this bundle was counted on it already (merged changes)
+        self._conn.executemany(
+            "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1) "
+            "ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + 1",
+            ((c.id, int(x)) for x in cells),
+        )
+        self._refresh(c.id, lattice, stamp_shown=stamp)
+
+    def _merge(self, target: _Change, other: _Change) -> None:
+        """Fold ``other`` into ``target`` (one thing seen in two parts): sightings, cells and
+        counts move to the older change; the younger one's id is kept as an alias."""
+        self._conn.execute(
+            "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) "
+            "SELECT ?, bundle_id, robot, stamp FROM sightings WHERE change_id = ?",
+            (target.id, other.id),
+        )
+        self._conn.execute(
+            "INSERT INTO change_cells (change_id, cell, hits) SELECT ?, cell, hits FROM change_cells "
+            "WHERE change_id = ? ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + excluded.hits",
+            (target.id, other.id),
+        )
+        self._conn.execute(
+            "UPDATE changes SET contradicted = contradicted + ?, "
+            "latest_shows = CASE WHEN last_observed < ? THEN ? ELSE latest_shows END, "
+            "last_observed = max(last_observed, ?) WHERE id = ?",
+            (
+                other.contradicted,
+                other.last_observed,
+                int(other.latest_shows),
+                other.last_observed,
+                target.id,
+            ),
+        )
+        self._conn.execute("DELETE FROM changes WHERE id = ?", (other.id,))
+        self._conn.execute("UPDATE merges SET new_id = ? WHERE new_id = ?", (target.id, other.id))
+        self._conn.execute(
+            "INSERT OR REPLACE INTO merges (old_id, new_id) VALUES (?, ?)", (other.id, target.id)
+        )
+        merged = np.unique(np.concatenate([target.cells, other.cells]))
+        target.cells = merged
+        target.hits = np.ones(len(merged), np.int64)
+
+    def _refresh(self, cid: int, lattice: Lattice, *, stamp_shown: str | None = None) -> None:
+        """Recompute a change's counts, times, box and outline from its sightings and cells."""
+        sessions, first, last = self._conn.execute(
+            "SELECT count(*), min(stamp), max(stamp) FROM sightings WHERE change_id = ?", (cid,)
+        ).fetchone()
+        cells = np.array(
+            [
+                r[0]
+                for r in self._conn.execute(
+                    "SELECT cell FROM change_cells WHERE change_id = ?", (cid,)
+                )
+            ],
+            np.int64,
+        )
+        rows, cols = lattice.unflat(cells)
+        self._conn.execute(
+            "UPDATE changes SET sessions = ?, first_seen = ?, last_seen = ?, row0 = ?, col0 = ?, "
+            "row1 = ?, col1 = ?, polygon = ?, updated_at = ?, "
+            "latest_shows = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN 1 ELSE latest_shows END, "
+            "last_observed = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN ? ELSE last_observed END "
+            "WHERE id = ?",
+            (
+                sessions,
+                first,
+                last,
+                int(rows.min()),
+                int(cols.min()),
+                int(rows.max()) + 1,
+                int(cols.max()) + 1,
+                json.dumps(lattice.outline(cells)),
+                _now(),
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                cid,
+            ),
+        )
+
+    def _resolve_merged(self, change_id: int) -> int:
+        row = self._conn.execute(
+            "SELECT new_id FROM merges WHERE old_id = ?", (change_id,)
+        ).fetchone()
+        return int(row[0]) if row else change_id
+
+    # -- publishing -------------------------------------------------------------------------
+
+    def _confirmed_ids(self, map_id: int) -> list[int]:
+        return [
+            r[0]
+            for r in self._conn.execute(
+                "SELECT id FROM changes WHERE map_id = ? AND state = 'confirmed' ORDER BY id",
+                (map_id,),
+            )
+        ]
+
+    def _paint_cells(self, cid: int) -> tuple[str, IntArray]:
+        kind, sessions = self._conn.execute(
+            "SELECT kind, sessions FROM changes WHERE id = ?", (cid,)
+        ).fetchone()
+        need = min(self.settings.paint_min_sessions, sessions)
+        cells = np.array(
+            [
+                r[0]
+                for r in self._conn.execute(
+                    "SELECT cell FROM change_cells WHERE change_id = ? AND hits >= ?", (cid, need)
+                )
+            ],
+            np.int64,
+        )
+        return kind, cells
+
+    def _current_state(self, map_id: int, name: str) -> NDArray[np.uint8]:
+        version = self._current_version(map_id)
+        cached = self._states.get(map_id)
+        if cached is not None and cached[0] == version:
+            return cached[1]
+        y = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()[0]
+        state = load_map(self.root / name / y).state
+        state.flags.writeable = False
+        self._states[map_id] = (version, state)
+        return state
+
+    def _publish_changes(
+        self, map_id: int, name: str, lattice: Lattice, yaw: float, ids: list[int], *, note: str
+    ) -> int:
+        """A new version: the current one with the changes painted (an added change's cells
+        occupied, a removed one's free), only the cells their sessions saw changed."""
+        state = self._current_state(map_id, name).copy()
+        for cid in ids:
+            kind, cells = self._paint_cells(cid)
+            rows, cols = lattice.unflat(cells)
+            if kind == "added":
+                state[rows, cols] = OCCUPIED
+            else:
+                was = state[rows, cols] == OCCUPIED
+                state[rows[was], cols[was]] = FREE
+        return self._publish_state(map_id, name, lattice, yaw, state, note, published=ids)
+
+    def _publish_state(
+        self,
+        map_id: int,
+        name: str,
+        lattice: Lattice,
+        yaw: float,
+        state: NDArray[np.uint8],
+        note: str,
+        *,
+        published: Sequence[int] = (),
+        undone: Sequence[int] = (),
+    ) -> int:
+        version = self._current_version(map_id) + 1
+        folder = self.root / name
+        yaml_path, image = publish.write_version(folder, version, state, lattice, yaw)
+        digest = sha256_file(image)
+        now = _now()
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (map_id, version, now, yaml_path.name, image.name, digest, note),
+            )
+            for cid in published:
+                self._conn.execute(
+                    "UPDATE changes SET state = 'published', version = ?, updated_at = ? WHERE id = ?",
+                    (version, now, cid),
+                )
+            for cid in undone:
+                self._conn.execute(
+                    "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
+                    (f"undone by {note}", now, cid),
+                )
+        frozen = state.copy()
+        frozen.flags.writeable = False
+        self._states[map_id] = (version, frozen)
+        publish.write_current(folder, yaml_path)
+        log.info("map %s: published version %d (%s)", name, version, note)
+        return version
+
+    def _write_derived(self, name: str, *, force: bool = False) -> None:
+        """current.yaml (force), the keepout mask (when its cells changed) and changes.yaml."""
+        map_id, lattice, yaw, _ = self._map(name)
+        folder = self.root / name
+        version = self._current_version(map_id)
+        if force or not (folder / publish.CURRENT).exists():
+            y = self._conn.execute(
+                "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+            ).fetchone()[0]
+            publish.write_current(folder, folder / y)
+        keep = [self._paint_cells(cid) for cid in self._confirmed_ids(map_id)]
+        cells = np.unique(
+            np.concatenate([c for k, c in keep if k == "added"] or [np.zeros(0, np.int64)])
+        )
+        sig = hashlib.sha256(cells.astype("<i8").tobytes()).hexdigest()
+        old = self._conn.execute("SELECT keepout_sig FROM maps WHERE id = ?", (map_id,)).fetchone()[
+            0
+        ]
+        if force or sig != old or not (folder / f"{publish.KEEPOUT}.yaml").exists():
+            publish.write_keepout(folder, cells, lattice, yaw)
+            self._conn.execute("UPDATE maps SET keepout_sig = ? WHERE id = ?", (sig, map_id))
+        publish.write_changes(
+            folder,
+            {
+                "format": 1,
+                "map": name,
+                "current_version": version,
+                "changes": [c.document() for c in self.changes(name)],
+            },
+        )
+
+    # -- rows -------------------------------------------------------------------------------
+
+    def _map_row(self, name: str, *, missing_ok: bool = False) -> tuple[Any, ...] | None:
+        row = self._conn.execute(
+            "SELECT id, width, height, resolution, origin_x, origin_y, origin_yaw, created_at "
+            "FROM maps WHERE name = ?",
+            (name,),
+        ).fetchone()
+        if row is None and not missing_ok:
+            known = [r[0] for r in self._conn.execute("SELECT name FROM maps ORDER BY name")]
+            raise StoreError(
+                f"no map named {name!r} in the store"
+                + (
+                    f" (maps: {', '.join(known)})"
+                    if known
+                    else " (add one with 'mapserver maps add')"
+                )
+            )
+        return row  # type: ignore[no-any-return]
+
+    def _map(self, name: str) -> tuple[int, Lattice, float, str]:
+        row = self._map_row(name)
+        assert row is not None
+        map_id, w, h, res, ox, oy, yaw, created = row
+        return map_id, Lattice(w, h, res, ox, oy), yaw, created
+
+    def _current_version(self, map_id: int) -> int:
+        return int(
+            self._conn.execute(
+                "SELECT max(version) FROM versions WHERE map_id = ?", (map_id,)
+            ).fetchone()[0]
+        )
