@@ -120,6 +120,9 @@ class UpdateConfig(_Frozen):
     """... spread over at least this many hours (a cart parked for an afternoon is not a wall)."""
     expire_unseen_days: float = Field(30.0, gt=0)
     """A pending change that no bundle has observed for this long (by bundle stamps) expires."""
+    expired_listed_days: float = Field(7.0, ge=0)
+    """changes.yaml lists expired changes for this long after they expired (a person seen once
+    is an expired change: a year of them would make the file huge); the database keeps all."""
     paint_min_sessions: int = Field(2, ge=1)
     """A published version paints a cell of a change only when at least this many of its
     sessions saw that cell changed (or all of them, when fewer)."""

@@ -39,6 +39,7 @@ from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store
 
 if TYPE_CHECKING:
+    from mapserver.fleet.store import FleetStore
     from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
@@ -223,6 +224,7 @@ class Service:
         self._generation = 0
         self._pool_broken = False
         self._counts = _Counts()
+        self._fleet: FleetStore | None = None
         self._stopping = False
         self._abort = False
         self.ready = threading.Event()
@@ -265,6 +267,12 @@ class Service:
     def _run(self) -> int:
         config = self._config
         self._store.prepare()
+        if config.maps is not None:
+            # Refuses to start on a damaged or missing database, saying how to recover.
+            from mapserver.fleet.store import FleetStore
+
+            self._fleet = FleetStore(config.maps, config.update, checkpoint=self._checkpoint)
+            self._fleet.sync()
         now = time.monotonic()
         recovered = self._store.recover()
         self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
@@ -292,6 +300,8 @@ class Service:
                 observer.join()
         finally:
             self._finish_running()
+            if self._fleet is not None:
+                self._fleet.close()
         log.info(
             "stopped: %d results, %d failed; %d bundles taken and not started (processed at the "
             "next start)",
@@ -528,6 +538,15 @@ class Service:
             reason = f"internal error: the result is for bundle {outcome.bundle_id!r}"
             self._fail(job, "process", reason)
             return
+        if outcome.observation is not None and self._fleet is not None:
+            try:
+                update = self._fleet.apply(outcome.observation)
+            except Exception as error:  # a damaged database, a full disk under it
+                log.exception("%s: cannot apply it to the fleet map", bundle_id)
+                self._fail(job, "update", f"cannot apply it to the fleet map: {error}")
+                return
+            update.annotate(outcome.result)
+            log.info("%s: update %.1f ms: %s", bundle_id, update.seconds * 1000.0, update.summary())
         start = time.perf_counter()
         try:
             result_dir = self._store.publish(outcome)

@@ -86,7 +86,8 @@ def write_keepout(
     return path
 
 
-def write_changes(folder: Path, document: dict[str, Any]) -> Path:
+def write_changes_text(folder: Path, text: bytes) -> Path:
+    """``changes.yaml`` (its YAML text made by the store), replaced by rename."""
     path = folder / CHANGES
-    replace_atomic(path, dump_yaml(document))
+    replace_atomic(path, text)
     return path

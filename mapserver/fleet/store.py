@@ -17,7 +17,7 @@ import math
 import shutil
 import sqlite3
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import timedelta, timezone
 from pathlib import Path
@@ -34,7 +34,7 @@ from mapserver.fleet import evidence, publish, tracker
 from mapserver.fleet.db import connect, connect_readonly, transaction
 from mapserver.fleet.lattice import IntArray, Lattice
 from mapserver.fleet.observe import Observation
-from mapserver.fsio import replace_atomic
+from mapserver.fsio import dump_yaml, replace_atomic
 from mapserver.maps import FREE, OCCUPIED, load_map
 
 log = logging.getLogger(__name__)
@@ -99,6 +99,7 @@ class ChangeInfo:
     bundles: list[str]
     version: int | None
     note: str
+    updated_at: str = ""
 
     def document(self) -> dict[str, Any]:
         return {
@@ -195,6 +196,23 @@ class _Change:
     merged: list[int] = field(default_factory=list)
 
 
+def _box(cells: IntArray, lattice: Lattice, grow: int) -> tuple[int, int, int, int]:
+    """(row0, col0, row1, col1) around the cells, grown by ``grow`` cells (empty: nothing)."""
+    if len(cells) == 0:
+        return (0, 0, -1, -1)
+    rows, cols = lattice.unflat(cells)
+    return (
+        int(rows.min()) - grow,
+        int(cols.min()) - grow,
+        int(rows.max()) + grow,
+        int(cols.max()) + grow,
+    )
+
+
+def _boxes_meet(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
 def lookup(root: Path, image_sha256: str) -> MapLink | None:
     """The stored map one of whose versions has this image (sha256), read-only; None if none.
 
@@ -233,14 +251,28 @@ class FleetStore:
     :class:`StoreError` that says how to recover).
     """
 
-    def __init__(self, root: Path, settings: UpdateConfig | None = None, *, create: bool = True):
+    def __init__(
+        self,
+        root: Path,
+        settings: UpdateConfig | None = None,
+        *,
+        create: bool = True,
+        checkpoint: Callable[[str], None] | None = None,
+    ):
         self.root = Path(root)
+        # Test hook: called at named steps ("evidence-applied" inside the bundle's transaction,
+        # "bundle-applied" after its commit, "version-written" before a version's commit).
+        self._checkpoint = checkpoint or (lambda name: None)
         self.settings = settings or UpdateConfig()
         self.rule = tracker.Persistence(
             self.settings.confirm_sessions, self.settings.confirm_span_hours
         )
         self._conn = connect(self.root, create=create)
         self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
+        # changes.yaml is rewritten after every update: each change's YAML text is kept and
+        # made again only when the change was touched (ids in _dirty).
+        self._docs: dict[int, dict[int, tuple[str, str, str]]] = {}
+        self._dirty: set[int] = set()
 
     def close(self) -> None:
         self._conn.close()
@@ -376,12 +408,18 @@ class FleetStore:
 
     # -- changes ----------------------------------------------------------------------------
 
-    def changes(self, name: str | None = None, *, state: str | None = None) -> list[ChangeInfo]:
+    def changes(
+        self,
+        name: str | None = None,
+        *,
+        state: str | None = None,
+        ids: Iterable[int] | None = None,
+    ) -> list[ChangeInfo]:
         if state is not None and state not in STATES:
             raise StoreError(f"unknown state {state!r}: use one of {', '.join(STATES)}")
         sql = (
             "SELECT c.id, m.name, c.kind, c.state, c.polygon, c.first_seen, c.last_seen, "
-            "c.sessions, c.contradicted, c.version, c.note FROM changes c "
+            "c.sessions, c.contradicted, c.version, c.note, c.updated_at FROM changes c "
             "JOIN maps m ON m.id = c.map_id WHERE 1 = 1"
         )
         args: list[Any] = []
@@ -391,6 +429,12 @@ class FleetStore:
         if state is not None:
             sql += " AND c.state = ?"
             args.append(state)
+        if ids is not None:
+            wanted = sorted(set(ids))
+            if not wanted:
+                return []
+            sql += f" AND c.id IN ({','.join('?' * len(wanted))})"
+            args += wanted
         rows = self._conn.execute(sql + " ORDER BY c.id", args).fetchall()
         sightings: dict[int, list[tuple[str, str, str]]] = {}
         ids = [r[0] for r in rows]
@@ -403,7 +447,20 @@ class FleetStore:
             ):
                 sightings.setdefault(cid, []).append((stamp, bundle, robot))
         out = []
-        for cid, map_name, kind, st, poly, first, last, sessions, contra, version, note in rows:
+        for (
+            cid,
+            map_name,
+            kind,
+            st,
+            poly,
+            first,
+            last,
+            sessions,
+            contra,
+            version,
+            note,
+            upd,
+        ) in rows:
             seen = sorted(sightings.get(cid, []))
             out.append(
                 ChangeInfo(
@@ -420,6 +477,7 @@ class FleetStore:
                     [b for _, b, _ in seen],
                     version,
                     note,
+                    upd,
                 )
             )
         return out
@@ -467,6 +525,7 @@ class FleetStore:
                 "UPDATE changes SET state = 'rejected', note = 'rejected by an operator', updated_at = ? WHERE id = ?",
                 (_now(), change_id),
             )
+            self._dirty.add(change_id)
         self._write_derived(info.map)
         return self.change(change_id)
 
@@ -495,6 +554,7 @@ class FleetStore:
             hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
             evidence.add_observation(self._conn, map_id, obs.window, obs.occupied, obs.free, hour)
             outcome = self._track(map_id, lattice, obs, stamp)
+            self._checkpoint("evidence-applied")
             self._conn.execute(
                 "INSERT INTO bundles (fingerprint, bundle_id, map_id, robot, stamp, applied_at, "
                 "judged_version, outcome) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
@@ -509,6 +569,7 @@ class FleetStore:
                     json.dumps(outcome),
                 ),
             )
+        self._checkpoint("bundle-applied")
         new_version = None
         published: list[int] = []
         warnings: list[str] = []
@@ -579,10 +640,12 @@ class FleetStore:
         assigned: dict[int, list[IntArray]] = {}
         new: list[tuple[str, IntArray]] = []
         for found in obs.found:
+            near = _box(found.cells, lattice, radius)
             cands = [
                 c
                 for c in live
                 if c.kind == found.kind
+                and _boxes_meet(near, _box(c.cells, lattice, 0))
                 and (
                     c.state in ("pending", "confirmed", "rejected")
                     or (c.state == "published" and (c.version or 0) > obs.judged_version)
@@ -631,6 +694,7 @@ class FleetStore:
                 tolerance_px=tol,
             )
             if verdict == "as_before":
+                self._dirty.add(c.id)
                 later = stamp >= c.last_observed
                 self._conn.execute(
                     "UPDATE changes SET contradicted = contradicted + ?, "
@@ -669,6 +733,7 @@ class FleetStore:
                 (f"not observed for {self.settings.expire_unseen_days:g} days", _now(), cid),
             )
             expired.append(cid)
+            self._dirty.add(cid)
         # 4. The persistence rule.
         confirmed = []
         for cid in sorted(set(supported) | set(created)):
@@ -688,6 +753,7 @@ class FleetStore:
                     (_now(), cid),
                 )
                 confirmed.append(cid)
+        self._dirty.update(created, supported)
         # 5. Which change each difference of the bundle's own result is.
         touched = set(supported) | set(created)
         refs = self._load_changes(
@@ -708,8 +774,9 @@ class FleetStore:
         result_changes: list[int | None] = []
         for kind, cells in obs.result_cells:
             best, best_n = None, 0
+            near = _box(cells, lattice, radius)
             for c in refs:
-                if c.kind != kind:
+                if c.kind != kind or not _boxes_meet(near, _box(c.cells, lattice, 0)):
                     continue
                 n = tracker.overlap(cells, c.cells, lattice, radius)
                 if n > best_n or (
@@ -867,6 +934,7 @@ class FleetStore:
             ),
         )
         self._conn.execute("DELETE FROM changes WHERE id = ?", (other.id,))
+        self._dirty.update((target.id, other.id))
         self._conn.execute("UPDATE merges SET new_id = ? WHERE new_id = ?", (target.id, other.id))
         self._conn.execute(
             "INSERT OR REPLACE INTO merges (old_id, new_id) VALUES (?, ?)", (other.id, target.id)
@@ -994,6 +1062,7 @@ class FleetStore:
         yaml_path, image = publish.write_version(folder, version, state, lattice, yaw)
         digest = sha256_file(image)
         now = _now()
+        self._checkpoint("version-written")
         with transaction(self._conn):
             self._conn.execute(
                 "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
@@ -1010,6 +1079,7 @@ class FleetStore:
                     "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
                     (f"undone by {note}", now, cid),
                 )
+        self._dirty.update(published, undone)
         frozen = state.copy()
         frozen.flags.writeable = False
         self._states[map_id] = (version, frozen)
@@ -1038,14 +1108,37 @@ class FleetStore:
         if force or sig != old or not (folder / f"{publish.KEEPOUT}.yaml").exists():
             publish.write_keepout(folder, cells, lattice, yaw)
             self._conn.execute("UPDATE maps SET keepout_sig = ? WHERE id = ?", (sig, map_id))
-        publish.write_changes(
-            folder,
-            {
-                "format": 1,
-                "map": name,
-                "current_version": version,
-                "changes": [c.document() for c in self.changes(name)],
-            },
+        self._write_changes(map_id, name, folder, version, force=force)
+
+    def _write_changes(
+        self, map_id: int, name: str, folder: Path, version: int, *, force: bool
+    ) -> None:
+        """changes.yaml: every tracked change, except expired ones that ended more than
+        ``update.expired_listed_days`` ago (the database keeps them all: 'mapserver changes
+        list --state expired')."""
+        docs = self._docs.get(map_id)
+        if docs is None or force:
+            docs = self._docs[map_id] = {}
+            fresh = self.changes(name)
+        else:
+            fresh = self.changes(name, ids=self._dirty)
+            for cid in self._dirty:
+                docs.pop(cid, None)  # merged away, or about to be made again
+        self._dirty.clear()
+        for c in fresh:
+            docs[c.id] = (c.state, c.updated_at, dump_yaml([c.document()]).decode("utf-8"))
+        cutoff = _utc(
+            (
+                tracker.parse_stamp(_now()) - timedelta(days=self.settings.expired_listed_days)
+            ).isoformat()
+        )
+        for cid in [k for k, (st, upd, _) in docs.items() if st == "expired" and upd < cutoff]:
+            del docs[cid]
+        # Block style, as a person reads it (map names are plain words: no quoting needed).
+        head = f"format: 1\nmap: {name}\ncurrent_version: {version}\n".encode()
+        body = "".join(docs[cid][2] for cid in sorted(docs))
+        publish.write_changes_text(
+            folder, head + (b"changes:\n" + body.encode("utf-8") if body else b"changes: []\n")
         )
 
     # -- rows -------------------------------------------------------------------------------
