@@ -274,7 +274,7 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
 
 SAMPLES = Path(__file__).parent / "data" / "samples"
 _DEMO_MARKER = ".mapserver-demo"
-_DEMO_DIRS = ("inbox", "outbox", "archive", "failed")
+_DEMO_DIRS = ("inbox", "outbox", "archive", "failed", "maps")
 
 
 def _prepare_demo_dir(root: Path) -> None:
@@ -292,6 +292,8 @@ def _prepare_demo_dir(root: Path) -> None:
     (root / _DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
     config: dict[str, Any] = {name: name for name in _DEMO_DIRS}
     config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)
+    # The demo publishes at once what three sessions confirm; a deployment's default is review.
+    config["update"] = {"mode": "auto"}
     (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
 
 
@@ -341,7 +343,73 @@ def _describe_result(bundle_id: str, result_dir: Path) -> list[str]:
             f"x={c.get('x', 0):.2f} y={c.get('y', 0):.2f}  "
             f"(box x {b.get('min_x', 0):.2f}..{b.get('max_x', 0):.2f}, "
             f"y {b.get('min_y', 0):.2f}..{b.get('max_y', 0):.2f})"
+            + (f"  change {d['change']}" if d.get("change") is not None else "")
         )
+    return lines
+
+
+def _demo_maps(root: Path, bundles: list[Path]) -> list[str]:
+    """Register each sample's global map in the demo's map store, named after the first bundle
+    that carries it (``depot-demo-01`` -> ``depot``). Returns what it did, a line each."""
+    from mapserver.bundle import read_manifest, sha256_file
+    from mapserver.config import load_config
+    from mapserver.fleet.store import FleetStore
+
+    config = load_config(root / "mapserver.yaml")
+    assert config.maps is not None
+    lines: list[str] = []
+    seen: set[str] = set()
+    with FleetStore(config.maps, config.update) as store:
+        for bundle in bundles:
+            nav2 = read_manifest(bundle).nav2_map
+            if nav2 is None:
+                continue
+            yaml_path = bundle / nav2
+            from mapserver.bundle import map_image_name
+
+            digest = sha256_file(yaml_path.parent / map_image_name(yaml_path))
+            if digest in seen:
+                continue
+            seen.add(digest)
+            name = bundle.name.split("-")[0] or bundle.name
+            if name in {m.name for m in store.maps()}:
+                name = bundle.name
+            v = store.add_map(name, yaml_path)
+            lines.append(f"map {name}: version 1 from {bundle.name}'s global map -> {v.yaml}")
+    return lines
+
+
+def _describe_maps(root: Path) -> list[str]:
+    from mapserver.config import load_config
+    from mapserver.fleet.store import FleetStore
+
+    config = load_config(root / "mapserver.yaml")
+    assert config.maps is not None
+    lines = []
+    with FleetStore(config.maps, config.update) as store:
+        for m in store.maps():
+            changes = store.changes(m.name)
+            published = [c for c in changes if c.state == "published"]
+            lines.append(
+                f"fleet map {m.name}: version {m.current_version} -> "
+                f"{config.maps / m.name / 'current.yaml'} (what Nav2's map_server loads)"
+            )
+            for v in store.versions(m.name)[1:]:
+                lines.append(
+                    f"  version {v.version}: changes {', '.join(map(str, v.changes))} ({v.note})"
+                )
+            for c in changes:
+                lines.append(
+                    f"  change {c.id}: {c.kind} {c.state}, seen in {c.sessions} "
+                    f"session{'s' if c.sessions != 1 else ''} by "
+                    f"{', '.join(c.robots)}" + (f"; {c.note}" if c.note else "")
+                )
+            if not published:
+                u = config.update
+                lines.append(
+                    f"  nothing published yet: a change needs {u.confirm_sessions} sessions "
+                    f"over {u.confirm_span_hours:g} hours"
+                )
     return lines
 
 
@@ -358,6 +426,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     _prepare_demo_dir(root)
     out = sys.stdout
     out.write(f"demo folder: {root}\n")
+    for line in _demo_maps(root, bundles):
+        out.write(line + "\n")
+    # Sessions happen one after another: the fleet map counts them in that order.
+    bundles = _by_stamp(bundles)
     log_path = root / "mapserver.log"
     with log_path.open("wb") as log_file:
         command = [
@@ -378,12 +450,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                 raise MapserverError(
                     "the daemon did not start; see its log", file=log_path, stage="demo"
                 )
-            out.write(f"uploading {len(bundles)} sample bundles the way rsync does...\n")
-            for bundle in bundles:
-                _upload_like_rsync(bundle, root / "inbox")
+            out.write(
+                f"uploading {len(bundles)} sample bundles the way rsync does, one session "
+                "after another...\n"
+            )
             ok = True
             deadline = time.monotonic() + 120 + 30 * len(bundles)
             for bundle in bundles:
+                _upload_like_rsync(bundle, root / "inbox")
                 result_dir = root / "outbox" / bundle.name
                 error = root / "failed" / bundle.name / "error.yaml"
                 done = functools.partial(_any_file, result_dir / "result.yaml", error)
@@ -409,6 +483,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out.write(
         f"stopped the daemon (exit code {code}). Inputs as they arrived: {root / 'archive'}\n"
     )
+    for line in _describe_maps(root):
+        out.write(line + "\n")
     return 0 if ok and code == 0 else 1
 
 
