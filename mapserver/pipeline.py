@@ -38,6 +38,7 @@ from mapserver.errors import (
     MapserverError,
     ProcessingError,
 )
+from mapserver.fleet import evidence as fleet_evidence
 from mapserver.fleet import observe, store
 from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D
@@ -545,10 +546,10 @@ def process_bundle(
                 state = resample(current.state, Grid.of_map(current), grid)
                 same = state == view.state
                 structure = (view.structure & same) | (state == OCCUPIED)
-                fleet_masks, fleet_evidence = _diff_masks(
+                fleet_masks, removal_current = _diff_masks(
                     state, structure, local_state, region.mask, grid, config, local, global_map
                 )
-                found = _cluster_masks(fleet_masks, fleet_evidence, grid, config, local)
+                found = _cluster_masks(fleet_masks, removal_current, grid, config, local)
             lattice = link.lattice
             window, occupied, free = observe.observed(local_state, grid, lattice)
             slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()
@@ -572,6 +573,7 @@ def process_bundle(
                 result_cells=tuple(
                     (d.kind, observe.cells_of(d.cells, grid, lattice)) for d in differences
                 ),
+                tiles=fleet_evidence.pack_tiles(window, occupied, free),
             )
 
         observation = stages.run("observe", _observe)

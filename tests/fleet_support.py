@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.fleet.evidence import pack_tiles
 from mapserver.fleet.lattice import Lattice, Window
 from mapserver.fleet.observe import Found, Observation
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, save_map
@@ -89,6 +90,7 @@ class Robot:
         cols = np.arange(400)[view[1]]
         window = Window(int(rows[0]), int(cols[0]), len(rows), len(cols))
         crop = seen[view]
+        occupied, free = crop == OCCUPIED, crop == FREE
         return Observation(
             map_name=map_name,
             bundle_id=bid,
@@ -98,8 +100,9 @@ class Robot:
             bundle_version=bundle_version,
             judged_version=judged_version,
             window=window,
-            occupied=crop == OCCUPIED,
-            free=crop == FREE,
+            occupied=occupied,
+            free=free,
             found=tuple(Found(kind, cells(region)) for kind, region in found),
             result_cells=tuple((kind, cells(region)) for kind, region in found),
+            tiles=pack_tiles(window, occupied, free),
         )

@@ -98,6 +98,15 @@ MIGRATIONS: tuple[str, ...] = (
         data BLOB NOT NULL,
         PRIMARY KEY (map_id, tile_row, tile_col)
     ) WITHOUT ROWID;
+    CREATE TABLE evidence_deltas (
+        id INTEGER PRIMARY KEY,
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        tile_row INTEGER NOT NULL,
+        tile_col INTEGER NOT NULL,
+        hour INTEGER NOT NULL,
+        data BLOB NOT NULL
+    );
+    CREATE INDEX evidence_deltas_by_tile ON evidence_deltas(map_id, tile_row, tile_col);
     """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.fleet.evidence import TileDelta
 from mapserver.fleet.lattice import (
     IntArray,
     Lattice,
@@ -52,6 +53,8 @@ class Observation:
     free: NDArray[np.bool_]
     found: tuple[Found, ...]
     result_cells: tuple[tuple[str, IntArray], ...]
+    tiles: tuple[TileDelta, ...] = ()
+    """``occupied`` and ``free`` packed per evidence tile (:func:`evidence.pack_tiles`)."""
 
 
 def fingerprint(manifest_bytes: bytes, slam_image_sha256: str) -> str:

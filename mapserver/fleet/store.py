@@ -32,7 +32,7 @@ from mapserver.config import UpdateConfig
 from mapserver.errors import StoreError
 from mapserver.fleet import evidence, publish, tracker
 from mapserver.fleet.db import connect, connect_readonly, transaction
-from mapserver.fleet.lattice import IntArray, Lattice
+from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.observe import Observation
 from mapserver.fsio import dump_yaml, replace_atomic
 from mapserver.maps import FREE, OCCUPIED, load_map
@@ -552,7 +552,7 @@ class FleetStore:
                     seconds=time.perf_counter() - start,
                 )
             hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
-            evidence.add_observation(self._conn, map_id, obs.window, obs.occupied, obs.free, hour)
+            evidence.add_deltas(self._conn, map_id, obs.tiles, hour)
             outcome = self._track(map_id, lattice, obs, stamp)
             self._checkpoint("evidence-applied")
             self._conn.execute(
@@ -614,6 +614,22 @@ class FleetStore:
             warnings=tuple(warnings),
             seconds=time.perf_counter() - start,
         )
+
+    def fold_evidence(self, *, max_tiles: int = 16) -> int:
+        """Fold the pending evidence of up to ``max_tiles`` tiles into their counters (the
+        daemon calls it when idle). Returns the deltas folded; 0 when nothing waits."""
+        tiles = evidence.pending_tiles(self._conn, max_tiles)
+        if not tiles:
+            return 0
+        folded = 0
+        with transaction(self._conn):
+            for map_id, tr, tc in tiles:
+                folded += evidence.fold(self._conn, map_id, [(tr, tc)])
+        return folded
+
+    def evidence(self, name: str, window: Window) -> evidence.TileEvidence:
+        """The evidence counters over a window of a map (cells [row, col] from its corner)."""
+        return evidence.read_window(self._conn, self._map(name)[0], window)
 
     def sync(self) -> None:
         """Bring the files in line with the database (after a crash between a commit and the
