@@ -34,12 +34,12 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_speed  # noqa: E402
+import bench_speed
 
-from mapserver.config import Config, UpdateConfig  # noqa: E402
-from mapserver.fleet import store as fleet_store  # noqa: E402
-from mapserver.fleet.store import FleetStore  # noqa: E402
-from mapserver.pipeline import process_bundle  # noqa: E402
+from mapserver.config import Config, UpdateConfig
+from mapserver.fleet import store as fleet_store
+from mapserver.fleet.store import FleetStore
+from mapserver.pipeline import process_bundle
 
 TARGET_UPDATE_MS = 30.0
 TARGET_PUBLISH_S = 1.0
@@ -66,7 +66,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--bundles", type=int, default=16)
     parser.add_argument("--hours", type=float, default=7.0, help="between two sessions")
-    parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "bench-speed-data")
+    parser.add_argument(
+        "--data", type=Path, default=Path(tempfile.gettempdir()) / "bench-speed-data"
+    )
     args = parser.parse_args(argv)
     data = bench_speed.build_data(args.data)
     work = Path(tempfile.mkdtemp(prefix="bench-fleet-"))
