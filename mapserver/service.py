@@ -331,6 +331,9 @@ class Service:
             for decision in self._tracker.poll(budget_s=min(_POLL_TURN_S, self._ping_every)):
                 _guarded(decision.name, self._take, decision)
             self._dispatch()
+            if self._fleet is not None and not self._running and not self._queue:
+                # Idle: fold waiting evidence into its counters, a few tiles a turn.
+                _guarded("fleet", self._fleet.fold_evidence)
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
@@ -667,7 +670,7 @@ class Service:
         raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _guarded(bundle_id: str, handle: Callable[..., None], *args: Any) -> None:
+def _guarded(bundle_id: str, handle: Callable[..., object], *args: Any) -> None:
     """A bug met while handling one bundle is logged; it never stops the daemon (the bundle stays
     where it is, and the next start takes it up again)."""
     try:
