@@ -695,7 +695,8 @@ class FleetStore:
             self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
             supported.append(cid)
         # 2. Changes this bundle observed without finding them: shown, or as before?
-        expired = []
+        expired: list[int] = []
+        shown: list[int] = []
         tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
         for c in live:
             if c.id in assigned or c.state not in ("pending", "confirmed"):
@@ -732,11 +733,11 @@ class FleetStore:
                 )
                 if later:
                     expired.append(c.id)
-            elif verdict == "shows" and stamp >= c.last_observed:
-                self._conn.execute(
-                    "UPDATE changes SET last_observed = ?, latest_shows = 1 WHERE id = ?",
-                    (stamp, c.id),
-                )
+            elif verdict == "shows":
+                # The local map shows it though the bundle's differences did not report it (too
+                # few cells this time, an edge of the observed area): a session that saw it.
+                self._support(c, np.zeros(0, np.int64), obs, stamp, lattice)
+                shown.append(c.id)
         # 3. Pending changes nobody has observed for long expire.
         limit = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
         cutoff = _utc(limit.isoformat())
@@ -752,6 +753,7 @@ class FleetStore:
             self._dirty.add(cid)
         # 4. The persistence rule.
         confirmed = []
+        supported += shown
         for cid in sorted(set(supported) | set(created)):
             row = self._conn.execute(
                 "SELECT state, sessions, first_seen, last_seen, latest_shows FROM changes WHERE id = ?",

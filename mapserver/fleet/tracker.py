@@ -64,17 +64,24 @@ def judge(
     min_cells: int = 4,
     min_seen_share: float = 0.5,
     as_before_share: float = 0.7,
+    shows_share: float = 0.5,
 ) -> Verdict:
     """What one bundle's observation says of a tracked change's ``cells``.
 
     ``unseen``: the bundle observed too few of the cells (fewer than ``min_cells``, or less
-    than ``min_seen_share`` of them). Otherwise, for an ``added`` change, ``as_before`` when at
-    least ``as_before_share`` of the observed cells are free with no occupied cell within
-    ``tolerance_px`` (the obstacle is gone: the area is as the map has it), ``shows`` when most
-    have an occupied cell that close; for a ``removed`` change, ``as_before`` when at least
-    ``as_before_share`` of them have an occupied cell within ``tolerance_px`` (the structure is
-    back), ``shows`` when most are free with none; else ``unclear``. The tolerance keeps a
-    bundle that sees the obstacle a cell or two off from contradicting it.
+    than ``min_seen_share`` of them). Otherwise, of the observed cells:
+
+    - ``added``: ``shows`` when at least ``shows_share`` are occupied or have an occupied
+      neighbour (the obstacle is there); ``as_before`` when at least ``as_before_share`` have no
+      occupied cell within ``tolerance_px`` (it is gone: the area is as the map has it);
+    - ``removed``: ``shows`` when at least ``as_before_share`` have no occupied cell within
+      ``tolerance_px`` (the structure is still gone); ``as_before`` when at least
+      ``shows_share`` are occupied or have an occupied neighbour (it is back);
+    - else ``unclear``.
+
+    Presence needs the cells themselves (a neighbour at most: one cell of misalignment);
+    absence needs nothing occupied within the tolerance. A bundle that sees the thing a little
+    off is ``unclear``, neither: it neither confirms nor contradicts.
     """
     rows, cols, inside = window.local(lattice, cells)
     rows, cols = rows[inside], cols[inside]
@@ -83,15 +90,12 @@ def judge(
     if n_seen < min_cells or n_seen < min_seen_share * len(cells):
         return "unseen"
     rows, cols = rows[seen], cols[seen]
-    near = _near_occupied(occupied, rows, cols, tolerance_px)
-    share_near = float(near.mean())
+    present = float(_near_occupied(occupied, rows, cols, 1).mean())
+    absent = 1.0 - float(_near_occupied(occupied, rows, cols, tolerance_px).mean())
+    there, gone = present >= shows_share, absent >= as_before_share
     if kind == "added":
-        if 1.0 - share_near >= as_before_share:
-            return "as_before"
-        return "shows" if share_near > 0.5 else "unclear"
-    if share_near >= as_before_share:
-        return "as_before"
-    return "shows" if share_near < 0.5 else "unclear"
+        return "shows" if there else "as_before" if gone else "unclear"
+    return "shows" if gone else "as_before" if there else "unclear"
 
 
 def _near_occupied(
