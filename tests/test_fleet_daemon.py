@@ -182,3 +182,17 @@ def test_two_kill_9s_of_a_busy_daemon_lose_and_repeat_no_evidence(tmp_path: Path
         wait_until(lambda: results(tmp_path) == len(names), timeout=60, what="all results")
         assert last.stop() == 0, last.log()
     assert_fleet_settled(tmp_path, sources)
+
+
+def test_a_daemon_refuses_to_start_on_a_damaged_store_and_says_how_to_recover(
+    tmp_path: Path,
+) -> None:
+    config, _ = setup(tmp_path, 1)
+    for name in ("store.db-wal", "store.db-shm"):
+        (tmp_path / "maps" / name).unlink(missing_ok=True)
+    (tmp_path / "maps" / "store.db").write_bytes(b"\0garbage" * 512)
+    with Daemon(config) as daemon:
+        assert daemon.wait_exit() == 1
+        log = daemon.log()
+    assert "store.db" in log and "restore" in log and "mapserver maps add" in log, log
+    assert (tmp_path / "maps" / "site" / "v0001.pgm").is_file()  # the versions are untouched
