@@ -308,3 +308,23 @@ def test_the_database_is_wal_with_foreign_keys(tmp_path: Path, hall: Path) -> No
     conn = sqlite3.connect(tmp_path / "maps" / "store.db")
     assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     assert conn.execute("PRAGMA user_version").fetchone()[0] >= 1
+
+
+def test_two_parts_of_one_wall_merge_into_the_older_change_and_its_id_still_answers(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    top, bottom = (slice(60, 100), WALL[1]), (slice(140, 181), WALL[1])
+    # Each of the first two robots saw only its half of the hall.
+    north, south = (slice(0, 110), slice(0, 400)), (slice(130, 240), slice(0, 400))
+    (a,) = store.apply(robot.observe(0, added=(WALL,), found=(("added", top),), view=north)).created
+    (b,) = store.apply(
+        robot.observe(1, added=(WALL,), found=(("added", bottom),), view=south)
+    ).created
+    whole = store.apply(wall_seen(robot, 2))  # one difference over both parts
+    assert whole.changes == (a,) and whole.created == ()
+    (change,) = store.changes("hall")
+    assert change.id == a and change.sessions == 3 and store.change(b).id == a
+    rejected = store.reject(b)  # the merged id acts on the change it joined
+    assert (rejected.id, rejected.state) == (a, "rejected")

@@ -507,7 +507,7 @@ class FleetStore:
             )
         map_id, lattice, yaw, _ = self._map(info.map)
         version = self._publish_changes(
-            map_id, info.map, lattice, yaw, [change_id], note=f"approved change {change_id}"
+            map_id, info.map, lattice, yaw, [info.id], note=f"approved change {info.id}"
         )
         self._write_derived(info.map)
         return next(v for v in self.versions(info.map) if v.version == version)
@@ -523,9 +523,9 @@ class FleetStore:
         with transaction(self._conn):
             self._conn.execute(
                 "UPDATE changes SET state = 'rejected', note = 'rejected by an operator', updated_at = ? WHERE id = ?",
-                (_now(), change_id),
+                (_now(), info.id),
             )
-            self._dirty.add(change_id)
+            self._dirty.add(info.id)
         self._write_derived(info.map)
         return self.change(change_id)
 
