@@ -40,6 +40,7 @@ from mapserver.errors import (
 )
 from mapserver.fleet import evidence as fleet_evidence
 from mapserver.fleet import observe, store
+from mapserver.fleet.model import MapLink
 from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D
 from mapserver.grid import Grid, landing_box, resample
@@ -310,7 +311,7 @@ def _map_link(
     global_map: OccupancyMap,
     bundle_dir: Path,
     warnings: list[str],
-) -> store.MapLink | None:
+) -> MapLink | None:
     """The stored map whose version is this bundle's global map (by its image's sha256), or
     None with a warning."""
     image = global_map.image

@@ -143,7 +143,7 @@ def _positive_int(text: str) -> int:
 
 def register(sub: Any) -> None:
     """Add the ``maps`` and ``changes`` commands to the ``mapserver`` parser."""
-    from mapserver.fleet.store import STATES
+    from mapserver.fleet.model import STATES
 
     fmt = argparse.RawDescriptionHelpFormatter
     maps = sub.add_parser(
