@@ -10,6 +10,7 @@ import hashlib
 import math
 import re
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Annotated
 
@@ -130,6 +131,19 @@ class Manifest(_Model):
         # YAML turns an unquoted ISO time into a datetime; keep the text form.
         if hasattr(value, "isoformat"):
             return value.isoformat().replace("+00:00", "Z")
+        return value
+
+    @field_validator("stamp")
+    @classmethod
+    def _stamp_iso(cls, value: str) -> str:
+        try:
+            parsed = datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError:
+            raise ValueError(
+                f"{value!r} is not an ISO 8601 time (write it like 2026-11-21T10:15:00Z)"
+            ) from None
+        if parsed.tzinfo is None:
+            raise ValueError(f"{value!r} has no time zone (write it like 2026-11-21T10:15:00Z)")
         return value
 
     def nav2_from_slam_prior(self) -> Transform2D:

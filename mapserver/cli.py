@@ -28,6 +28,8 @@ import yaml
 
 from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
+from mapserver.fleet.cli import open_store
+from mapserver.fleet.cli import register as register_fleet_commands
 from mapserver.lock import AlreadyRunning, daemon_pid
 
 log = logging.getLogger("mapserver")
@@ -67,33 +69,62 @@ def _cmd_process(args: argparse.Namespace) -> int:
             f"mapserver: results go to {outbox} (the built-in default; choose with --outbox DIR "
             "or --config FILE)\n"
         )
+    store = open_store(config, create=True) if config.maps is not None else None
     failures = 0
-    for bundle in args.bundles:
-        bundle_dir = Path(bundle)
-        try:
-            outcome = process_bundle(bundle_dir, config)
-            replaced = (outbox / outcome.bundle_id / RESULT).exists()
-            final = write_result(outbox, outcome)
-        except MapserverError as error:
-            failures += 1
-            sys.stderr.write(f"mapserver: error: {error.reason}\n")
-            continue
-        differences = outcome.result.get("differences") or []
-        note = " (replaced the earlier result)" if replaced else ""
-        lines = [f"{outcome.bundle_id}: {len(differences)} differences -> {final / RESULT}{note}"]
-        lines += [_difference_line(d) for d in differences]
-        sys.stdout.write("\n".join(lines) + "\n")
+    try:
+        # The fleet map counts bundles in stamp order: process them in that order.
+        for bundle_dir in _by_stamp([Path(b) for b in args.bundles]):
+            try:
+                outcome = process_bundle(bundle_dir, config)
+                if store is not None and outcome.observation is not None:
+                    update = store.apply(outcome.observation)
+                    update.annotate(outcome.result)
+                    log.info("%s: update %s", outcome.bundle_id, update.summary())
+                replaced = (outbox / outcome.bundle_id / RESULT).exists()
+                final = write_result(outbox, outcome)
+            except MapserverError as error:
+                failures += 1
+                sys.stderr.write(f"mapserver: error: {error.reason}\n")
+                continue
+            differences = outcome.result.get("differences") or []
+            note = " (replaced the earlier result)" if replaced else ""
+            lines = [
+                f"{outcome.bundle_id}: {len(differences)} differences -> {final / RESULT}{note}"
+            ]
+            lines += [_difference_line(d) for d in differences]
+            sys.stdout.write("\n".join(lines) + "\n")
+    finally:
+        if store is not None:
+            store.close()
     return 1 if failures else 0
 
 
+def _by_stamp(bundles: list[Path]) -> list[Path]:
+    """Bundles sorted by their manifest's stamp (stable; unreadable ones keep their place at
+    the end, where processing reports what is wrong with them)."""
+    from mapserver.bundle import read_manifest
+    from mapserver.fleet.tracker import parse_stamp
+
+    def key(item: tuple[int, Path]) -> tuple[int, float, int]:
+        index, path = item
+        try:
+            return (0, parse_stamp(read_manifest(path).stamp).timestamp(), index)
+        except (MapserverError, OSError, ValueError):
+            return (1, 0.0, index)
+
+    return [p for _, p in sorted(enumerate(bundles), key=key)]
+
+
 def _difference_line(d: dict[str, Any]) -> str:
-    """One difference of a result.yaml: id, kind, area and centroid in metres, its box."""
+    """One difference of a result.yaml: id, kind, area and centroid in metres, its box, and the
+    fleet map's change it belongs to."""
     c, b = d.get("centroid", {}), d.get("bbox", {})
     return (
         f"  {d.get('id')}. {d.get('kind', '?'):7} {d.get('area_m2', 0):7.2f} m2 at "
         f"x={c.get('x', 0):.2f} y={c.get('y', 0):.2f}  "
         f"(box x {b.get('min_x', 0):.2f}..{b.get('max_x', 0):.2f}, "
         f"y {b.get('min_y', 0):.2f}..{b.get('max_y', 0):.2f})"
+        + (f"  change {d['change']}" if d.get("change") is not None else "")
     )
 
 
@@ -318,7 +349,7 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
 
 SAMPLES = Path(__file__).parent / "data" / "samples"
 _DEMO_MARKER = ".mapserver-demo"
-_DEMO_DIRS = ("inbox", "outbox", "archive", "failed")
+_DEMO_DIRS = ("inbox", "outbox", "archive", "failed", "maps")
 
 
 def _prepare_demo_dir(root: Path) -> None:
@@ -338,6 +369,8 @@ def _prepare_demo_dir(root: Path) -> None:
         (root / name).mkdir()
     config: dict[str, Any] = {name: name for name in _DEMO_DIRS}
     config.update(settle_seconds=0.5, rescan_seconds=10, stale_after_seconds=60)
+    # The demo publishes at once what three sessions confirm; a deployment's default is review.
+    config["update"] = {"mode": "auto"}
     (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
 
 
@@ -384,6 +417,71 @@ def _describe_result(bundle_id: str, result_dir: Path) -> list[str]:
     return lines
 
 
+def _demo_maps(root: Path, bundles: list[Path]) -> list[str]:
+    """Register each sample's global map in the demo's map store, named after the first bundle
+    that carries it (``depot-demo-01`` -> ``depot``). Returns what it did, a line each."""
+    from mapserver.bundle import read_manifest, sha256_file
+    from mapserver.config import load_config
+    from mapserver.fleet.store import FleetStore
+
+    config = load_config(root / "mapserver.yaml")
+    assert config.maps is not None
+    lines: list[str] = []
+    seen: set[str] = set()
+    with FleetStore(config.maps, config.update) as store:
+        for bundle in bundles:
+            nav2 = read_manifest(bundle).nav2_map
+            if nav2 is None:
+                continue
+            yaml_path = bundle / nav2
+            from mapserver.bundle import map_image_name
+
+            digest = sha256_file(yaml_path.parent / map_image_name(yaml_path))
+            if digest in seen:
+                continue
+            seen.add(digest)
+            name = bundle.name.split("-")[0] or bundle.name
+            if name in {m.name for m in store.maps()}:
+                name = bundle.name
+            v = store.add_map(name, yaml_path)
+            lines.append(f"map {name}: version 1 from {bundle.name}'s global map -> {v.yaml}")
+    return lines
+
+
+def _describe_maps(root: Path) -> list[str]:
+    from mapserver.config import load_config
+    from mapserver.fleet.store import FleetStore
+
+    config = load_config(root / "mapserver.yaml")
+    assert config.maps is not None
+    lines = []
+    with FleetStore(config.maps, config.update) as store:
+        for m in store.maps():
+            changes = store.changes(m.name)
+            published = [c for c in changes if c.state == "published"]
+            lines.append(
+                f"fleet map {m.name}: version {m.current_version} -> "
+                f"{config.maps / m.name / 'current.yaml'} (what Nav2's map_server loads)"
+            )
+            for v in store.versions(m.name)[1:]:
+                lines.append(
+                    f"  version {v.version}: changes {', '.join(map(str, v.changes))} ({v.note})"
+                )
+            for c in changes:
+                lines.append(
+                    f"  change {c.id}: {c.kind} {c.state}, seen in {c.sessions} "
+                    f"session{'s' if c.sessions != 1 else ''} by "
+                    f"{', '.join(c.robots)}" + (f"; {c.note}" if c.note else "")
+                )
+            if not published:
+                u = config.update
+                lines.append(
+                    f"  nothing published yet: a change needs {u.confirm_sessions} sessions "
+                    f"over {u.confirm_span_hours:g} hours"
+                )
+    return lines
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     root = Path(args.dir).resolve()
     samples = Path(args.samples) if args.samples else SAMPLES
@@ -397,6 +495,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     _prepare_demo_dir(root)
     out = sys.stdout
     out.write(f"demo folder: {root}\n")
+    for line in _demo_maps(root, bundles):
+        out.write(line + "\n")
+    # Sessions happen one after another: the fleet map counts them in that order.
+    bundles = _by_stamp(bundles)
     log_path = root / "mapserver.log"
     with log_path.open("wb") as log_file:
         command = [
@@ -417,12 +519,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                 raise MapserverError(
                     "the daemon did not start; see its log", file=log_path, stage="demo"
                 )
-            out.write(f"uploading {len(bundles)} sample bundles the way rsync does...\n")
-            for bundle in bundles:
-                _upload_like_rsync(bundle, root / "inbox")
+            out.write(
+                f"uploading {len(bundles)} sample bundles the way rsync does, one session "
+                "after another...\n"
+            )
             ok = True
             deadline = time.monotonic() + 120 + 30 * len(bundles)
             for bundle in bundles:
+                _upload_like_rsync(bundle, root / "inbox")
                 result_dir = root / "outbox" / bundle.name
                 error = root / "failed" / bundle.name / "error.yaml"
                 done = functools.partial(_any_file, result_dir / "result.yaml", error)
@@ -448,6 +552,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out.write(
         f"stopped the daemon (exit code {code}). Inputs as they arrived: {root / 'archive'}\n"
     )
+    for line in _describe_maps(root):
+        out.write(line + "\n")
     return 0 if ok and code == 0 else 1
 
 
@@ -594,6 +700,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the bundle directory to create; its name is the bundle id",
     )
     p.set_defaults(func=_cmd_bundle)
+
+    register_fleet_commands(sub)
 
     p = _command(
         sub,

@@ -13,7 +13,7 @@ rounding of their coordinates, are always neighbours here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import cv2
@@ -40,6 +40,8 @@ class Difference:
     bbox: tuple[float, float, float, float]
     area_m2: float
     pixels: int
+    cells: NDArray[np.intp] | None = field(default=None, compare=False, repr=False)
+    """(pixels, 2) ``(row, col)`` of its pixels on the grid it was found on."""
 
 
 def cluster_mask(
@@ -93,6 +95,7 @@ def cluster_mask(
                 (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
                 float(area),
                 len(pts),
+                np.stack([rows[members], cols[members]], axis=1),
             )
         )
     return out

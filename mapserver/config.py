@@ -136,6 +136,25 @@ class PipelineConfig(_Frozen):
     render: RenderConfig = RenderConfig()
 
 
+class UpdateConfig(_Frozen):
+    """The fleet map's update (contract section 7)."""
+
+    mode: Literal["review", "auto"] = "review"
+    """review: confirmed changes wait for ``mapserver changes approve``; auto: published at once."""
+    confirm_sessions: int = Field(3, ge=1)
+    """A change is confirmed when this many sessions (bundles) saw it ..."""
+    confirm_span_hours: float = Field(12.0, ge=0)
+    """... spread over at least this many hours (a cart parked for an afternoon is not a wall)."""
+    expire_unseen_days: float = Field(30.0, gt=0)
+    """A pending change that no bundle has observed for this long (by bundle stamps) expires."""
+    expired_listed_days: float = Field(7.0, ge=0)
+    """changes.yaml lists expired changes for this long after they expired (a person seen once
+    is an expired change: a year of them would make the file huge); the database keeps all."""
+    paint_min_sessions: int = Field(2, ge=1)
+    """A published version paints a cell of a change only when at least this many of its
+    sessions saw that cell changed (or all of them, when fewer)."""
+
+
 class Config(_Frozen):
     """The whole configuration. The first keys are contract section 6."""
 
@@ -157,12 +176,15 @@ class Config(_Frozen):
     of the machine, see :meth:`worker_memory_limit_mb`."""
     limits: LimitsConfig = LimitsConfig()
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    maps: Path | None = None
+    """The map store (contract section 7); null turns the fleet map's update off."""
+    update: UpdateConfig = UpdateConfig()
     pipeline: PipelineConfig = PipelineConfig()
 
     def resolved(self, base_dir: Path) -> Config:
         """A copy with every relative path made absolute against ``base_dir``."""
         updates: dict[str, Path | None] = {}
-        for key in ("inbox", "outbox", "archive", "failed", "reference_map"):
+        for key in ("inbox", "outbox", "archive", "failed", "reference_map", "maps"):
             value = getattr(self, key)
             if value is not None:
                 updates[key] = (base_dir / value).resolve() if not value.is_absolute() else value

@@ -11,6 +11,7 @@ enough context (the stage, the file, the field) to write one line a person can a
             ``ChecksumMismatch`` -- a file's sha256 is not the manifest's (yet).
     ``ProcessingError``  -- the pipeline failed on otherwise valid input.
         ``OutOfMemory``  -- a stage ran out of memory (the daemon's workers have a limit).
+    ``StoreError``       -- the map store refused an operation or cannot be used.
 """
 
 from __future__ import annotations
@@ -86,6 +87,13 @@ class ProcessingError(MapserverError):
 
 class OutOfMemory(ProcessingError):
     """A stage could not allocate the memory it needed."""
+
+
+class StoreError(MapserverError):
+    """The map store (contract section 7) refused an operation (an unknown map or change, a
+    change not in a state that allows it) or cannot be used (its database missing or damaged)."""
+
+    default_stage = "update"
 
 
 def no_such_path(path: Path) -> str:

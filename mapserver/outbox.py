@@ -36,17 +36,18 @@ from itertools import count
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
-
 from mapserver.bundle import is_valid_bundle_id
 from mapserver.errors import ConfigError
+from mapserver.fsio import dump_yaml as _dump
+from mapserver.fsio import fsync_dir as _fsync_dir
+from mapserver.fsio import rename_durable as _rename
+from mapserver.fsio import write_new as _write
 
 if TYPE_CHECKING:
     from mapserver.config import Config
     from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
-_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 RESULT = "result.yaml"
 ERROR = "error.yaml"
@@ -62,45 +63,9 @@ def utc_now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write(path: Path, data: bytes) -> None:
-    with path.open("xb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-
-
-def _rename(src: Path, dst: Path) -> None:
-    """Rename and make the rename durable (both directories fsynced)."""
-    os.rename(src, dst)
-    _fsync_dir(dst.parent)
-    if src.parent != dst.parent:
-        _fsync_dir(src.parent)
-
-
 def _text(value: str) -> str:
     """A str that YAML can hold: undecodable bytes of file names become U+FFFD."""
     return value.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
-
-
-def _dump(document: dict[str, Any]) -> bytes:
-    # libyaml's emitter when PyYAML has it: a result with a long ROI outline takes ~40 ms in the
-    # pure-Python one, in the daemon's main process, for every bundle.
-    text = yaml.dump(
-        document,
-        Dumper=_DUMPER,
-        sort_keys=False,
-        default_flow_style=None,
-        allow_unicode=True,
-    )
-    return text.encode("utf-8")
 
 
 def error_document(bundle_id: str, stage: str, reason: str) -> dict[str, Any]:

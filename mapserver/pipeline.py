@@ -23,11 +23,13 @@ from mapserver import cluster as cluster_stage
 from mapserver import deform, render, roi
 from mapserver import diff as diff_stage
 from mapserver.bundle import (
+    MANIFEST,
     BundleFiles,
     check_bundle_dir,
     check_bundle_files,
     is_valid_bundle_id,
     map_image_name,
+    sha256_file,
 )
 from mapserver.config import Config
 from mapserver.errors import (
@@ -38,8 +40,12 @@ from mapserver.errors import (
     OutOfMemory,
     ProcessingError,
 )
+from mapserver.fleet import evidence as fleet_evidence
+from mapserver.fleet import observe, store
+from mapserver.fleet.model import MapLink
+from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D
-from mapserver.grid import Grid, landing_box
+from mapserver.grid import Grid, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
 
@@ -54,8 +60,9 @@ _ANALYSIS_MARGIN_M = 1.0
 _NARROW_SEARCH_DEG = 8.0
 
 # Decoded global maps, kept across bundles in this process (a daemon worker serves many bundles
-# of the same building). Two maps: the one in use and the one before it.
-GLOBAL_MAPS = MapCache(capacity=2)
+# of the same building). Three maps: the one in use, the one before it, and the fleet map's
+# current version.
+GLOBAL_MAPS = MapCache(capacity=3)
 
 
 @dataclass(frozen=True)
@@ -69,6 +76,8 @@ class Outcome:
     bundle_id: str
     result: dict[str, Any]
     images: dict[str, bytes]
+    observation: Observation | None = None
+    """What the bundle contributes to its stored map (``maps:`` set and the map stored)."""
 
 
 _stage_listener: Callable[[str], None] | None = None
@@ -245,6 +254,141 @@ def _difference_doc(index: int, d: cluster_stage.Difference) -> dict[str, Any]:
     }
 
 
+def _diff_masks(
+    global_state: np.ndarray,
+    structure: np.ndarray,
+    local_state: np.ndarray,
+    roi_mask: np.ndarray,
+    grid: Grid,
+    config: Config,
+    local: OccupancyMap,
+    global_map: OccupancyMap,
+) -> tuple[diff_stage.DiffMasks, np.ndarray]:
+    """The filtered added/removed masks of the local map against a global state (on ``grid``),
+    and the removal evidence."""
+    d = config.pipeline.diff
+    tolerance_map = None
+    if d.max_misfit_tolerance_m > d.tolerance_m:
+        tolerance_map = diff_stage.misfit_tolerance(
+            local_state,
+            structure,  # the global walls: occupied cells and grey-drawn ones
+            resolution=grid.resolution,
+            base_m=d.tolerance_m,
+            max_m=d.max_misfit_tolerance_m,
+            tile_m=d.misfit_tile_m,
+            # Tiles fixed in the nav2 frame (edges at multiples of the tile from its
+            # origin), whatever part of the map the work grid covers.
+            tile_offset_px=(
+                -round((grid.y0 + grid.height * grid.resolution) / grid.resolution),
+                round(grid.x0 / grid.resolution),
+            ),
+        )
+    raw = diff_stage.raw_differences(
+        global_state,
+        local_state,
+        roi_mask,
+        resolution=grid.resolution,
+        tolerance_m=d.tolerance_m,
+        removed_tolerance_m=d.removed_tolerance_m,
+        global_walls=structure,
+        extra_tolerance_m=tolerance_map,
+    )
+    min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
+    filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
+    evidence = diff_stage.removal_evidence(
+        global_state,
+        local_state,
+        filtered.removed,
+        resolution=grid.resolution,
+        depth_m=max(d.removed_depth_m, 2 * max(local.resolution, global_map.resolution)),
+        see_through_m=d.see_through_m,
+    )
+    return filtered, evidence
+
+
+def _cluster_masks(
+    masks: diff_stage.DiffMasks,
+    removal_evidence: np.ndarray,
+    grid: Grid,
+    config: Config,
+    local: OccupancyMap,
+) -> list[cluster_stage.Difference]:
+    """The obstacles of the difference masks, largest first."""
+    d = config.pipeline.diff
+    cell_m2 = local.resolution**2
+    found = []
+    for kind, mask, cells, evidence in (
+        ("added", masks.added, d.min_local_cells, None),
+        (
+            "removed",
+            masks.removed,
+            max(d.min_local_cells, d.min_removed_cells),
+            removal_evidence,
+        ),
+    ):
+        min_area = max(d.min_area_m2, cells * cell_m2)
+        found += cluster_stage.cluster_mask(
+            mask,
+            grid,
+            kind,
+            eps_m=d.cluster_eps_m,
+            min_samples=d.cluster_min_samples,
+            min_area_m2=min_area,
+            evidence=evidence,
+            min_evidence=d.removed_evidence_share,
+            engine=d.cluster_engine,
+        )
+    return cluster_stage.sort_by_area(found)
+
+
+def _map_link(
+    maps_root: Path,
+    files: BundleFiles,
+    global_map: OccupancyMap,
+    bundle_dir: Path,
+    warnings: list[str],
+) -> MapLink | None:
+    """The stored map whose version is this bundle's global map (by its image's sha256), or
+    None with a warning."""
+    image = global_map.image
+    if image is None:
+        return None
+    known = None
+    if files.nav2_image is not None:
+        known = (files.manifest.checksums or {}).get(
+            files.nav2_image.relative_to(bundle_dir).as_posix()
+        )
+    digest = known or _image_digest(image)
+    link = store.lookup(maps_root, digest)
+    if link is None:
+        warnings.append(
+            f"the global map {image.name} is no version of a stored map: this bundle changes "
+            "no stored map (register the building map with 'mapserver maps add')"
+        )
+        return None
+    if not link.lattice.matches(global_map):
+        warnings.append(
+            f"the global map's image is version {link.bundle_version} of map {link.name}, but "
+            "its YAML gives another size, resolution or origin: this bundle changes no stored map"
+        )
+        return None
+    return link
+
+
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def _image_digest(path: Path) -> str:
+    """sha256 of an image, remembered by path, size and mtime (the reference map is hashed
+    once per worker, not once per bundle)."""
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    digest = _DIGESTS.get(key)
+    if digest is None:
+        digest = _DIGESTS[key] = sha256_file(path)
+    return digest
+
+
 def process_bundle(
     bundle_dir: Path,
     config: Config,
@@ -385,75 +529,14 @@ def process_bundle(
         if not alignment.trusted:
             empty = np.zeros(grid.shape, bool)
             return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
-        d = settings.diff
-        tolerance_map = None
-        if d.max_misfit_tolerance_m > d.tolerance_m:
-            tolerance_map = diff_stage.misfit_tolerance(
-                local_state,
-                view.structure,  # the global walls: occupied cells and grey-drawn ones
-                resolution=grid.resolution,
-                base_m=d.tolerance_m,
-                max_m=d.max_misfit_tolerance_m,
-                tile_m=d.misfit_tile_m,
-                # Tiles fixed in the nav2 frame (edges at multiples of the tile from its
-                # origin), whatever part of the map the work grid covers.
-                tile_offset_px=(
-                    -round((grid.y0 + grid.height * grid.resolution) / grid.resolution),
-                    round(grid.x0 / grid.resolution),
-                ),
-            )
-        raw = diff_stage.raw_differences(
-            view.state,
-            local_state,
-            region.mask,
-            resolution=grid.resolution,
-            tolerance_m=d.tolerance_m,
-            removed_tolerance_m=d.removed_tolerance_m,
-            global_walls=view.structure,
-            extra_tolerance_m=tolerance_map,
+        return _diff_masks(
+            view.state, view.structure, local_state, region.mask, grid, config, local, global_map
         )
-        min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
-        filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
-        evidence = diff_stage.removal_evidence(
-            view.state,
-            local_state,
-            filtered.removed,
-            resolution=grid.resolution,
-            depth_m=max(d.removed_depth_m, 2 * max(local.resolution, global_map.resolution)),
-            see_through_m=d.see_through_m,
-        )
-        return filtered, evidence
 
     masks, removal_evidence = stages.run("diff", _diff)
-
-    def _cluster() -> list[cluster_stage.Difference]:
-        d = settings.diff
-        cell_m2 = local.resolution**2
-        found = []
-        for kind, mask, cells, evidence in (
-            ("added", masks.added, d.min_local_cells, None),
-            (
-                "removed",
-                masks.removed,
-                max(d.min_local_cells, d.min_removed_cells),
-                removal_evidence,
-            ),
-        ):
-            min_area = max(d.min_area_m2, cells * cell_m2)
-            found += cluster_stage.cluster_mask(
-                mask,
-                grid,
-                kind,
-                eps_m=d.cluster_eps_m,
-                min_samples=d.cluster_min_samples,
-                min_area_m2=min_area,
-                evidence=evidence,
-                min_evidence=d.removed_evidence_share,
-                engine=d.cluster_engine,
-            )
-        return cluster_stage.sort_by_area(found)
-
-    differences = stages.run("cluster", _cluster)
+    differences = stages.run(
+        "cluster", lambda: _cluster_masks(masks, removal_evidence, grid, config, local)
+    )
 
     def _render() -> dict[str, bytes]:
         r = settings.render
@@ -475,6 +558,63 @@ def process_bundle(
         return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
 
     images = stages.run("render", _render)
+
+    observation = None
+    maps_root = config.maps
+    if maps_root is not None:
+
+        def _observe() -> Observation | None:
+            link = _map_link(maps_root, files, global_map, bundle_dir, warnings)
+            if link is None:
+                return None
+            if not alignment.trusted:
+                warnings.append(
+                    f"map {link.name}: the alignment is not trusted; this bundle adds nothing "
+                    "to the fleet map"
+                )
+                return None
+            found = differences
+            if link.current_version != link.bundle_version:
+                # Judged against the version the fleet navigates on now, not the robot's copy.
+                current = GLOBAL_MAPS.load(
+                    link.current_yaml,
+                    link.current_yaml.parent / map_image_name(link.current_yaml),
+                    max_pixels=config.max_image_pixels,
+                )
+                state = resample(current.state, Grid.of_map(current), grid)
+                same = state == view.state
+                structure = (view.structure & same) | (state == OCCUPIED)
+                fleet_masks, removal_current = _diff_masks(
+                    state, structure, local_state, region.mask, grid, config, local, global_map
+                )
+                found = _cluster_masks(fleet_masks, removal_current, grid, config, local)
+            lattice = link.lattice
+            window, occupied, free = observe.observed(local_state, grid, lattice)
+            slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()
+            slam_sha = (files.manifest.checksums or {}).get(slam_rel) or sha256_file(
+                files.slam_image
+            )
+            return Observation(
+                map_name=link.name,
+                bundle_id=bundle_id,
+                fingerprint=observe.fingerprint((bundle_dir / MANIFEST).read_bytes(), slam_sha),
+                robot=files.manifest.robot,
+                stamp=files.manifest.stamp,
+                bundle_version=link.bundle_version,
+                judged_version=link.current_version,
+                window=window,
+                occupied=occupied,
+                free=free,
+                found=tuple(
+                    observe.Found(d.kind, observe.cells_of(d.cells, grid, lattice)) for d in found
+                ),
+                result_cells=tuple(
+                    (d.kind, observe.cells_of(d.cells, grid, lattice)) for d in differences
+                ),
+                tiles=fleet_evidence.pack_tiles(window, occupied, free),
+            )
+
+        observation = stages.run("observe", _observe)
 
     image_name = global_map.image.name if global_map.image is not None else ""
     result: dict[str, Any] = {
@@ -517,4 +657,7 @@ def process_bundle(
         alignment.score,
         sum(stages.timings_ms.values()),
     )
-    return Outcome(bundle_id, result, images)
+    if observation is not None:
+        result["map"]["name"] = observation.map_name
+        result["map"]["version"] = observation.bundle_version
+    return Outcome(bundle_id, result, images, observation)

@@ -54,6 +54,7 @@ from mapserver.outbox import RESULT, Store, utc_now
 from mapserver.status import write_status
 
 if TYPE_CHECKING:
+    from mapserver.fleet.store import FleetStore
     from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
@@ -362,6 +363,7 @@ class Service:
         self._generation = 0
         self._pool_broken = False
         self._counts = _Counts()
+        self._fleet: FleetStore | None = None
         self._stopping = False
         self._abort = False
         self.ready = threading.Event()
@@ -425,6 +427,12 @@ class Service:
         config = self._config
         self._store.prepare()
         self._inbox_id = _identity(config.inbox)
+        if config.maps is not None:
+            # Refuses to start on a damaged or missing database, saying how to recover.
+            from mapserver.fleet.store import FleetStore
+
+            self._fleet = FleetStore(config.maps, config.update, checkpoint=self._checkpoint)
+            self._fleet.sync()
         now = time.monotonic()
         recovered = self._store.recover()
         self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
@@ -454,6 +462,8 @@ class Service:
                 observer.join()
         finally:
             self._finish_running()
+            if self._fleet is not None:
+                self._fleet.close()
         log.info(
             "stopped: %d results, %d failed; %d bundles taken and not started (processed at the "
             "next start)",
@@ -484,6 +494,9 @@ class Service:
             for decision in self._tracker.poll(budget_s=min(_POLL_TURN_S, self._ping_every)):
                 _guarded(decision.name, self._take, decision)
             self._dispatch()
+            if self._fleet is not None and not self._running and not self._queue:
+                # Idle: fold waiting evidence into its counters, a few tiles a turn.
+                _guarded("fleet", self._fleet.fold_evidence)
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
@@ -759,6 +772,15 @@ class Service:
             reason = f"internal error: the result is for bundle {outcome.bundle_id!r}"
             self._fail(job, "process", reason)
             return
+        if outcome.observation is not None and self._fleet is not None:
+            try:
+                update = self._fleet.apply(outcome.observation)
+            except Exception as error:  # a damaged database, a full disk under it
+                log.exception("%s: cannot apply it to the fleet map", bundle_id)
+                self._fail(job, "update", f"cannot apply it to the fleet map: {error}")
+                return
+            update.annotate(outcome.result)
+            log.info("%s: update %.1f ms: %s", bundle_id, update.seconds * 1000.0, update.summary())
         start = time.perf_counter()
         try:
             result_dir = self._store.publish(outcome)
@@ -944,7 +966,7 @@ class Service:
         raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _guarded(bundle_id: str, handle: Callable[..., None], *args: Any) -> None:
+def _guarded(bundle_id: str, handle: Callable[..., object], *args: Any) -> None:
     """A bug met while handling one bundle is logged; it never stops the daemon (the bundle stays
     where it is, and the next start takes it up again)."""
     try:

@@ -10,7 +10,7 @@ import yaml
 from mapserver.config import Config, load_config
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "config" / "mapserver.example.yaml"
-PATHS = {"inbox", "outbox", "archive", "failed"}
+PATHS = {"inbox", "outbox", "archive", "failed", "maps"}
 
 
 def keys(data: dict[str, Any], prefix: str = "") -> set[str]:

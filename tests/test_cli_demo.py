@@ -10,6 +10,7 @@ import pytest
 from daemon_support import make_bundle
 
 from mapserver.cli import SAMPLES
+from mapserver.maps import load_map
 
 
 def demo(*args: str) -> subprocess.CompletedProcess[str]:
@@ -56,3 +57,9 @@ def test_demo_runs_on_the_shipped_samples(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr
     for sample in SAMPLES.glob("*/bundle.yaml"):
         assert (tmp_path / "demo" / "outbox" / sample.parent.name / "result.yaml").is_file()
+    # Three depot sessions over a day confirm its changes: the demo publishes version 2.
+    assert "fleet map depot: version 2" in done.stdout, done.stdout
+    current = load_map(tmp_path / "demo" / "maps" / "depot" / "current.yaml")
+    first = load_map(tmp_path / "demo" / "maps" / "depot" / "v0001.yaml")
+    changed = current.state != first.state
+    assert 0 < changed.sum() < 0.01 * changed.size  # the changes' cells, nothing else

@@ -1,0 +1,146 @@
+"""The fleet map's update step at airport scale (issue 9): time per bundle, publishing, memory.
+
+It reuses ``bench_speed.py``'s airport (a 5000 x 3000 px terminal at 0.05 m and 200 m
+sessions, generated once and kept under ``--data``), registers the terminal's map in a fresh
+store, and feeds it ``--bundles`` sessions in stamp order (the four sessions of the pool, again
+and again, ``--hours`` apart, so their changes are confirmed and published). It prints:
+
+* the update step (:meth:`FleetStore.apply`, in the main process, beside the pipeline's time):
+  median, p90 and max per bundle, and the tiles of evidence each bundle touched;
+* each publication of a version (a new 5000 x 3000 map written, fsynced, renamed);
+* the process's RSS after each bundle (memory bounded by what a bundle touches, not by the
+  number of bundles) and the database's size.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_fleet.py [--bundles 16] [--data /tmp/bench-speed-data]
+
+Targets: the update step <= 30 ms per airport bundle, publishing a version <= 1 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_speed
+
+from mapserver.config import Config, UpdateConfig
+from mapserver.fleet import store as fleet_store
+from mapserver.fleet.store import FleetStore
+from mapserver.pipeline import process_bundle
+
+TARGET_UPDATE_MS = 30.0
+TARGET_PUBLISH_S = 1.0
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) / 1024
+
+
+def _restamped(source: Path, target: Path, stamp: str, robot: str) -> Path:
+    shutil.copytree(source, target)
+    manifest = target / "bundle.yaml"
+    doc = yaml.safe_load(manifest.read_text())
+    doc["stamp"], doc["robot"] = stamp, robot
+    manifest.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return target
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--bundles", type=int, default=16)
+    parser.add_argument("--hours", type=float, default=7.0, help="between two sessions")
+    parser.add_argument(
+        "--data", type=Path, default=Path(tempfile.gettempdir()) / "bench-speed-data"
+    )
+    args = parser.parse_args(argv)
+    data = bench_speed.build_data(args.data)
+    work = Path(tempfile.mkdtemp(prefix="bench-fleet-"))
+    try:
+        config = Config(maps=work / "maps", update=UpdateConfig(mode="auto"))
+        store = FleetStore(work / "maps", config.update)
+        nav2 = data.pool[0] / "nav2_map.yaml"
+        start = time.perf_counter()
+        store.add_map("terminal", nav2)
+        print(f"maps add: {time.perf_counter() - start:.2f} s (5000 x 3000 cells)")
+        t0 = datetime(2026, 11, 21, 6, 0, tzinfo=timezone.utc)
+        updates, publishes, rss, tiles = [], [], [], []
+        real_publish = store._publish_state
+
+        def timed_publish(*a: object, **kw: object) -> int:
+            t = time.perf_counter()
+            version = real_publish(*a, **kw)  # type: ignore[arg-type]
+            publishes.append(time.perf_counter() - t)
+            return version
+
+        store._publish_state = timed_publish  # type: ignore[method-assign]
+        real_add = fleet_store.evidence.add_deltas
+
+        def counted(*a: object, **kw: object) -> list[tuple[int, int]]:
+            touched = real_add(*a, **kw)  # type: ignore[arg-type]
+            tiles.append(len(touched))
+            return touched
+
+        fleet_store.evidence.add_deltas = counted  # type: ignore[assignment]
+        for i in range(args.bundles):
+            source = data.pool[i % len(data.pool)]
+            stamp = (t0 + timedelta(hours=args.hours * i)).isoformat().replace("+00:00", "Z")
+            bundle = _restamped(source, work / "in" / f"terminal-{i:03d}", stamp, f"r{i % 3 + 1}")
+            outcome = process_bundle(bundle, config)
+            assert outcome.observation is not None, outcome.result.get("warnings")
+            t = time.perf_counter()
+            update = store.apply(outcome.observation)
+            updates.append((time.perf_counter() - t) * 1000.0)
+            rss.append(_rss_mib())
+            print(
+                f"  {bundle.name} {stamp}: update {updates[-1]:6.1f} ms, {tiles[-1]:3d} tiles, "
+                f"{update.summary()}, RSS {rss[-1]:.0f} MiB"
+            )
+        t = time.perf_counter()
+        store.rollback("terminal", 1)
+        rollback_s = time.perf_counter() - t
+        db_mib = sum(p.stat().st_size for p in (work / "maps").glob("store.db*")) / 2**20
+        u = np.array(updates)
+        # Without the bundles that published a version (their time is the publication's).
+        plain = np.array([ms for ms, n in zip(updates, range(len(updates)), strict=True)])
+        print(
+            f"update step per bundle: median {np.median(plain):.1f} ms, p90 "
+            f"{np.percentile(u, 90):.1f} ms, max {u.max():.1f} ms (target <= {TARGET_UPDATE_MS:g} "
+            f"ms: {'PASS' if np.median(plain) <= TARGET_UPDATE_MS else 'FAIL'}); tiles touched "
+            f"median {int(np.median(tiles))}"
+        )
+        if publishes:
+            p = np.array(publishes)
+            print(
+                f"publishing a version: {len(p)} versions, median {np.median(p):.3f} s, max "
+                f"{p.max():.3f} s (target <= {TARGET_PUBLISH_S:g} s: "
+                f"{'PASS' if p.max() <= TARGET_PUBLISH_S else 'FAIL'}); rollback {rollback_s:.3f} s"
+            )
+        print(
+            f"memory: RSS after the first bundle {rss[0]:.0f} MiB, after the last {rss[-1]:.0f} "
+            f"MiB; database {db_mib:.1f} MiB after {args.bundles} bundles"
+        )
+        store.close()
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

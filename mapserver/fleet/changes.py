@@ -1,0 +1,439 @@
+"""The tracked changes of a stored map, in the database: each difference a bundle found becomes a
+change or supports one, each change the bundle observed is judged, and the persistence rule
+confirms or expires them (FORMATS.md section 7). Runs inside the bundle's transaction; the rules
+themselves are the pure functions of :mod:`mapserver.fleet.tracker`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import timedelta
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapserver.config import UpdateConfig
+from mapserver.fleet import tracker
+from mapserver.fleet.lattice import IntArray, Lattice
+from mapserver.fleet.model import now_utc, utc_stamp
+from mapserver.fleet.observe import Observation
+
+# A found difference and a tracked change are one when their cells come this close (metres):
+# DBSCAN's own neighbourhood, so that what one bundle would cluster together stays one change.
+_MATCH_M = 0.3
+# Absence needs nothing occupied this close (metres) to a change's cells: a bundle that sees an
+# added obstacle a little off does not contradict it.
+_JUDGE_TOLERANCE_M = 0.2
+
+
+@dataclass
+class _Change:
+    id: int
+    kind: str
+    state: str
+    version: int | None
+    first_seen: str
+    last_seen: str
+    sessions: int
+    contradicted: int
+    last_observed: str
+    latest_shows: bool
+    cells: IntArray
+    hits: NDArray[np.int64]
+    touched: bool = False
+    merged: list[int] = field(default_factory=list)
+
+
+def _box(cells: IntArray, lattice: Lattice, grow: int) -> tuple[int, int, int, int]:
+    """(row0, col0, row1, col1) around the cells, grown by ``grow`` cells (empty: nothing)."""
+    if len(cells) == 0:
+        return (0, 0, -1, -1)
+    rows, cols = lattice.unflat(cells)
+    return (
+        int(rows.min()) - grow,
+        int(cols.min()) - grow,
+        int(rows.max()) + grow,
+        int(cols.max()) + grow,
+    )
+
+
+def _boxes_meet(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+class ChangeTracker:
+    """The tracked changes of the store's database ``conn``. ``dirty`` collects the ids of the
+    changes it touched (the store rewrites their lines of changes.yaml)."""
+
+    def __init__(self, conn: sqlite3.Connection, settings: UpdateConfig, dirty: set[int]):
+        self._conn = conn
+        self.settings = settings
+        self.rule = tracker.Persistence(settings.confirm_sessions, settings.confirm_span_hours)
+        self._dirty = dirty
+
+    def track(self, map_id: int, lattice: Lattice, obs: Observation, stamp: str) -> dict[str, Any]:
+        res = lattice.resolution
+        radius = max(1, round(_MATCH_M / res))
+        win = obs.window
+        live = self._load_changes(map_id, lattice, win, margin=radius)
+        by_id = {c.id: c for c in live}
+        created: list[int] = []
+        # 1. Every difference found against the current version: one tracked change each.
+        assigned: dict[int, list[IntArray]] = {}
+        new: list[tuple[str, IntArray]] = []
+        for found in obs.found:
+            near = _box(found.cells, lattice, radius)
+            cands = [
+                c
+                for c in live
+                if c.kind == found.kind
+                and _boxes_meet(near, _box(c.cells, lattice, 0))
+                and (
+                    c.state in ("pending", "confirmed", "rejected")
+                    or (c.state == "published" and (c.version or 0) > obs.judged_version)
+                )
+                and tracker.overlap(found.cells, c.cells, lattice, radius) > 0
+            ]
+            if not cands:
+                new.append((found.kind, found.cells))
+                continue
+            absorbing = [c for c in cands if c.state in ("rejected", "published")]
+            if absorbing:
+                target = absorbing[0]
+            else:
+                target = min(cands, key=lambda c: c.id)
+                for other in cands:
+                    if other.id != target.id and other.id in by_id:
+                        self._merge(target, other)
+                        live.remove(other)
+                        del by_id[other.id]
+                        if other.id in assigned:
+                            assigned.setdefault(target.id, []).extend(assigned.pop(other.id))
+            assigned.setdefault(target.id, []).append(found.cells)
+        # Near new differences of one kind in one bundle stay separate changes, as DBSCAN made them.
+        for kind, cells in new:
+            created.append(self._create(map_id, lattice, kind, cells, obs, stamp))
+        supported = []
+        for cid, parts in assigned.items():
+            c = by_id[cid]
+            if c.state == "published":
+                continue  # judged against an older version: already in the map
+            self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
+            supported.append(cid)
+        # 2. Changes this bundle observed without finding them: shown, or as before?
+        expired: list[int] = []
+        shown: list[int] = []
+        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
+        for c in live:
+            if c.id in assigned or c.state not in ("pending", "confirmed"):
+                continue
+            verdict = tracker.judge(
+                c.kind,
+                tracker.core_cells(c.cells, c.hits),
+                lattice,
+                win,
+                obs.occupied,
+                obs.free,
+                tolerance_px=tol,
+            )
+            if verdict == "as_before":
+                self._dirty.add(c.id)
+                later = stamp >= c.last_observed
+                self._conn.execute(
+                    "UPDATE changes SET contradicted = contradicted + ?, "
+                    "last_observed = CASE WHEN ? THEN ? ELSE last_observed END, "
+                    "latest_shows = CASE WHEN ? THEN 0 ELSE latest_shows END, "
+                    "state = CASE WHEN ? THEN 'expired' ELSE state END, "
+                    "note = CASE WHEN ? THEN ? ELSE note END, updated_at = ? WHERE id = ?",
+                    (
+                        int(stamp > c.first_seen),
+                        later,
+                        stamp,
+                        later,
+                        later,
+                        later,
+                        f"seen as before by {obs.bundle_id} ({obs.robot}, {stamp})",
+                        now_utc(),
+                        c.id,
+                    ),
+                )
+                if later:
+                    expired.append(c.id)
+            elif verdict == "shows":
+                # The local map shows it though the bundle's differences did not report it (too
+                # few cells this time, an edge of the observed area): a session that saw it.
+                self._support(c, np.zeros(0, np.int64), obs, stamp, lattice)
+                shown.append(c.id)
+        # 3. Pending changes nobody has observed for long expire.
+        limit = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
+        cutoff = utc_stamp(limit.isoformat())
+        for (cid,) in self._conn.execute(
+            "SELECT id FROM changes WHERE map_id = ? AND state = 'pending' AND last_observed < ?",
+            (map_id, cutoff),
+        ).fetchall():
+            self._conn.execute(
+                "UPDATE changes SET state = 'expired', note = ?, updated_at = ? WHERE id = ?",
+                (f"not observed for {self.settings.expire_unseen_days:g} days", now_utc(), cid),
+            )
+            expired.append(cid)
+            self._dirty.add(cid)
+        # 4. The persistence rule.
+        confirmed = []
+        supported += shown
+        for cid in sorted(set(supported) | set(created)):
+            row = self._conn.execute(
+                "SELECT state, sessions, first_seen, last_seen, latest_shows FROM changes WHERE id = ?",
+                (cid,),
+            ).fetchone()
+            if row[0] == "pending" and tracker.confirmed(
+                self.rule,
+                sessions=row[1],
+                first_seen=row[2],
+                last_seen=row[3],
+                latest_shows=bool(row[4]),
+            ):
+                self._conn.execute(
+                    "UPDATE changes SET state = 'confirmed', updated_at = ? WHERE id = ?",
+                    (now_utc(), cid),
+                )
+                confirmed.append(cid)
+        self._dirty.update(created, supported)
+        # 5. Which change each difference of the bundle's own result is.
+        touched = set(supported) | set(created)
+        refs = self._load_changes(
+            map_id,
+            lattice,
+            win,
+            margin=radius,
+            states=("pending", "confirmed", "published", "rejected", "expired"),
+            ids=touched,
+        )
+        refs += [
+            c
+            for c in self._load_changes(
+                map_id, lattice, win, margin=radius, states=("published", "rejected")
+            )
+            if c.id not in touched
+        ]
+        result_changes: list[int | None] = []
+        for kind, cells in obs.result_cells:
+            best, best_n = None, 0
+            near = _box(cells, lattice, radius)
+            for c in refs:
+                if c.kind != kind or not _boxes_meet(near, _box(c.cells, lattice, 0)):
+                    continue
+                n = tracker.overlap(cells, c.cells, lattice, radius)
+                if n > best_n or (
+                    n == best_n
+                    and n > 0
+                    and best is not None
+                    and c.id in touched
+                    and best not in touched
+                ):
+                    best, best_n = c.id, n
+            result_changes.append(best)
+        return {
+            "changes": result_changes,
+            "created": created,
+            "supported": sorted(supported),
+            "expired": sorted(expired),
+            "confirmed": confirmed,
+        }
+
+    def _load_changes(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        window: Any,
+        *,
+        margin: int,
+        states: Sequence[str] = ("pending", "confirmed", "published", "rejected"),
+        ids: Iterable[int] | None = None,
+    ) -> list[_Change]:
+        q = ",".join("?" * len(states))
+        sql = (
+            "SELECT id, kind, state, version, first_seen, last_seen, sessions, contradicted, "
+            f"last_observed, latest_shows FROM changes WHERE map_id = ? AND state IN ({q}) "
+            "AND row1 > ? AND row0 < ? AND col1 > ? AND col0 < ?"
+        )
+        args: list[Any] = [
+            map_id,
+            *states,
+            window.row0 - margin,
+            window.row0 + window.rows + margin,
+            window.col0 - margin,
+            window.col0 + window.cols + margin,
+        ]
+        if ids is not None:
+            wanted = sorted(ids)
+            if not wanted:
+                return []
+            sql += f" AND id IN ({','.join('?' * len(wanted))})"
+            args += wanted
+        out = []
+        for row in self._conn.execute(sql + " ORDER BY id", args).fetchall():
+            cells = np.array(
+                self._conn.execute(
+                    "SELECT cell, hits FROM change_cells WHERE change_id = ? ORDER BY cell",
+                    (row[0],),
+                ).fetchall(),
+                dtype=np.int64,
+            ).reshape(-1, 2)
+            out.append(
+                _Change(
+                    row[0],
+                    row[1],
+                    row[2],
+                    row[3],
+                    row[4],
+                    row[5],
+                    row[6],
+                    row[7],
+                    row[8],
+                    bool(row[9]),
+                    cells[:, 0],
+                    cells[:, 1],
+                )
+            )
+        return out
+
+    def _create(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        kind: str,
+        cells: IntArray,
+        obs: Observation,
+        stamp: str,
+    ) -> int:
+        rows, cols = lattice.unflat(cells)
+        cur = self._conn.execute(
+            "INSERT INTO changes (map_id, kind, state, first_seen, last_seen, sessions, "
+            "last_observed, latest_shows, row0, col0, row1, col1, polygon, updated_at) "
+            "VALUES (?, ?, 'pending', ?, ?, 1, ?, 1, ?, ?, ?, ?, ?, ?)",
+            (
+                map_id,
+                kind,
+                stamp,
+                stamp,
+                stamp,
+                int(rows.min()),
+                int(cols.min()),
+                int(rows.max()) + 1,
+                int(cols.max()) + 1,
+                json.dumps(lattice.outline(cells)),
+                now_utc(),
+            ),
+        )
+        cid = int(cur.lastrowid or 0)
+        self._conn.executemany(
+            "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1)",
+            ((cid, int(c)) for c in cells),
+        )
+        self._conn.execute(
+            "INSERT INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
+            (cid, obs.bundle_id, obs.robot, stamp),
+        )
+        return cid
+
+    def _support(
+        self, c: _Change, cells: IntArray, obs: Observation, stamp: str, lattice: Lattice
+    ) -> None:
+        cur = self._conn.execute(
+            "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
+            (c.id, obs.bundle_id, obs.robot, stamp),
+        )
+        if cur.rowcount == 0:
+            return  # this bundle was counted on it already (merged changes)
+        self._conn.executemany(
+            "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1) "
+            "ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + 1",
+            ((c.id, int(x)) for x in cells),
+        )
+        self._refresh(c.id, lattice, stamp_shown=stamp)
+
+    def _merge(self, target: _Change, other: _Change) -> None:
+        """Fold ``other`` into ``target`` (one thing seen in two parts): sightings, cells and
+        counts move to the older change; the younger one's id is kept as an alias."""
+        self._conn.execute(
+            "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) "
+            "SELECT ?, bundle_id, robot, stamp FROM sightings WHERE change_id = ?",
+            (target.id, other.id),
+        )
+        self._conn.execute(
+            "INSERT INTO change_cells (change_id, cell, hits) SELECT ?, cell, hits FROM change_cells "
+            "WHERE change_id = ? ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + excluded.hits",
+            (target.id, other.id),
+        )
+        self._conn.execute(
+            "UPDATE changes SET contradicted = contradicted + ?, "
+            "latest_shows = CASE WHEN last_observed < ? THEN ? ELSE latest_shows END, "
+            "last_observed = max(last_observed, ?) WHERE id = ?",
+            (
+                other.contradicted,
+                other.last_observed,
+                int(other.latest_shows),
+                other.last_observed,
+                target.id,
+            ),
+        )
+        self._conn.execute("DELETE FROM changes WHERE id = ?", (other.id,))
+        self._dirty.update((target.id, other.id))
+        self._conn.execute("UPDATE merges SET new_id = ? WHERE new_id = ?", (target.id, other.id))
+        self._conn.execute(
+            "INSERT OR REPLACE INTO merges (old_id, new_id) VALUES (?, ?)", (other.id, target.id)
+        )
+        merged = np.unique(np.concatenate([target.cells, other.cells]))
+        target.cells = merged
+        target.hits = np.ones(len(merged), np.int64)
+
+    def _refresh(self, cid: int, lattice: Lattice, *, stamp_shown: str | None = None) -> None:
+        """Recompute a change's counts, times, box and outline from its sightings and cells."""
+        sessions, first, last = self._conn.execute(
+            "SELECT count(*), min(stamp), max(stamp) FROM sightings WHERE change_id = ?", (cid,)
+        ).fetchone()
+        cells = np.array(
+            [
+                r[0]
+                for r in self._conn.execute(
+                    "SELECT cell FROM change_cells WHERE change_id = ?", (cid,)
+                )
+            ],
+            np.int64,
+        )
+        rows, cols = lattice.unflat(cells)
+        self._conn.execute(
+            "UPDATE changes SET sessions = ?, first_seen = ?, last_seen = ?, row0 = ?, col0 = ?, "
+            "row1 = ?, col1 = ?, polygon = ?, updated_at = ?, "
+            "latest_shows = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN 1 ELSE latest_shows END, "
+            "last_observed = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN ? ELSE last_observed END "
+            "WHERE id = ?",
+            (
+                sessions,
+                first,
+                last,
+                int(rows.min()),
+                int(cols.min()),
+                int(rows.max()) + 1,
+                int(cols.max()) + 1,
+                json.dumps(lattice.outline(cells)),
+                now_utc(),
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                stamp_shown,
+                cid,
+            ),
+        )
+
+    def resolve_merged(self, change_id: int) -> int:
+        row = self._conn.execute(
+            "SELECT new_id FROM merges WHERE old_id = ?", (change_id,)
+        ).fetchone()
+        return int(row[0]) if row else change_id

@@ -1,0 +1,200 @@
+"""The map store's database: SQLite in WAL mode, foreign keys on, a schema version with numbered
+migrations, one writer transaction (``BEGIN IMMEDIATE``) per bundle.
+
+The database says what was applied; the files of the store are derived from it.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from mapserver.errors import StoreError
+
+DB_NAME = "store.db"
+
+# Each entry migrates the schema from version i to i + 1 (PRAGMA user_version).
+MIGRATIONS: tuple[str, ...] = (
+    """
+    CREATE TABLE maps (
+        id INTEGER PRIMARY KEY,
+        name TEXT NOT NULL UNIQUE,
+        width INTEGER NOT NULL,
+        height INTEGER NOT NULL,
+        resolution REAL NOT NULL,
+        origin_x REAL NOT NULL,
+        origin_y REAL NOT NULL,
+        origin_yaw REAL NOT NULL,
+        created_at TEXT NOT NULL,
+        keepout_sig TEXT
+    );
+    CREATE TABLE versions (
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        version INTEGER NOT NULL,
+        created_at TEXT NOT NULL,
+        yaml TEXT NOT NULL,
+        image TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        note TEXT NOT NULL,
+        PRIMARY KEY (map_id, version)
+    );
+    CREATE INDEX versions_by_sha ON versions(sha256);
+    CREATE TABLE changes (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        kind TEXT NOT NULL CHECK (kind IN ('added', 'removed')),
+        state TEXT NOT NULL
+            CHECK (state IN ('pending', 'confirmed', 'published', 'rejected', 'expired')),
+        first_seen TEXT NOT NULL,
+        last_seen TEXT NOT NULL,
+        sessions INTEGER NOT NULL,
+        contradicted INTEGER NOT NULL DEFAULT 0,
+        last_observed TEXT NOT NULL,
+        latest_shows INTEGER NOT NULL,
+        version INTEGER,
+        row0 INTEGER NOT NULL,
+        col0 INTEGER NOT NULL,
+        row1 INTEGER NOT NULL,
+        col1 INTEGER NOT NULL,
+        polygon TEXT NOT NULL,
+        note TEXT NOT NULL DEFAULT '',
+        updated_at TEXT NOT NULL
+    );
+    CREATE INDEX changes_by_state ON changes(map_id, state);
+    CREATE TABLE sightings (
+        change_id INTEGER NOT NULL REFERENCES changes(id) ON DELETE CASCADE,
+        bundle_id TEXT NOT NULL,
+        robot TEXT NOT NULL,
+        stamp TEXT NOT NULL,
+        PRIMARY KEY (change_id, bundle_id)
+    ) WITHOUT ROWID;
+    CREATE TABLE change_cells (
+        change_id INTEGER NOT NULL REFERENCES changes(id) ON DELETE CASCADE,
+        cell INTEGER NOT NULL,
+        hits INTEGER NOT NULL,
+        PRIMARY KEY (change_id, cell)
+    ) WITHOUT ROWID;
+    CREATE TABLE merges (
+        old_id INTEGER PRIMARY KEY,
+        new_id INTEGER NOT NULL
+    );
+    CREATE TABLE bundles (
+        fingerprint TEXT PRIMARY KEY,
+        bundle_id TEXT NOT NULL,
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        robot TEXT NOT NULL,
+        stamp TEXT NOT NULL,
+        applied_at TEXT NOT NULL,
+        judged_version INTEGER NOT NULL,
+        outcome TEXT NOT NULL
+    );
+    CREATE INDEX bundles_by_id ON bundles(bundle_id);
+    CREATE TABLE evidence (
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        tile_row INTEGER NOT NULL,
+        tile_col INTEGER NOT NULL,
+        data BLOB NOT NULL,
+        PRIMARY KEY (map_id, tile_row, tile_col)
+    ) WITHOUT ROWID;
+    CREATE TABLE evidence_deltas (
+        id INTEGER PRIMARY KEY,
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        tile_row INTEGER NOT NULL,
+        tile_col INTEGER NOT NULL,
+        hour INTEGER NOT NULL,
+        data BLOB NOT NULL
+    );
+    CREATE INDEX evidence_deltas_by_tile ON evidence_deltas(map_id, tile_row, tile_col);
+    """,
+)
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+def _recovery(root: Path) -> str:
+    return (
+        f"restore {root / DB_NAME} from a backup (with the daemon stopped), or move {root} "
+        "aside and register the maps again with 'mapserver maps add' (the versions on disk are "
+        "never touched)"
+    )
+
+
+def connect(root: Path, *, create: bool) -> sqlite3.Connection:
+    """Open (and with ``create``, make and migrate) the database of the store at ``root``.
+
+    Raises :class:`StoreError` with how to recover when the database is missing while the store
+    holds maps, is not a database, fails its integrity check, or is newer than this program.
+    """
+    path = root / DB_NAME
+    if not path.exists():
+        held = sorted(p.parent.name for p in root.glob("*/v0001.yaml")) if root.is_dir() else []
+        if held:
+            raise StoreError(
+                f"the map store's database is missing, but {root} holds maps "
+                f"({', '.join(held)}): {_recovery(root)}",
+                file=path,
+            )
+        if not create:
+            raise StoreError(
+                "no map store here yet (add a map with 'mapserver maps add')", file=path
+            )
+        root.mkdir(parents=True, exist_ok=True)
+    try:
+        conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+        conn.execute("PRAGMA foreign_keys = ON")
+        conn.execute("PRAGMA synchronous = FULL")
+        mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        check = conn.execute("PRAGMA quick_check").fetchone()[0]
+        version = conn.execute("PRAGMA user_version").fetchone()[0]
+    except sqlite3.DatabaseError as error:
+        raise StoreError(
+            f"the map store's database is unreadable ({error}): {_recovery(root)}", file=path
+        ) from None
+    if check != "ok":
+        conn.close()
+        raise StoreError(
+            f"the map store's database is damaged ({check}): {_recovery(root)}", file=path
+        )
+    if mode.lower() != "wal":
+        conn.close()
+        raise StoreError(f"cannot put the map store's database in WAL mode (got {mode})", file=path)
+    if version > SCHEMA_VERSION:
+        conn.close()
+        raise StoreError(
+            f"the map store's database has schema {version}, newer than this mapserver "
+            f"({SCHEMA_VERSION}): upgrade mapserver",
+            file=path,
+        )
+    if version < SCHEMA_VERSION:
+        with transaction(conn):
+            for step in range(version, SCHEMA_VERSION):
+                for statement in _statements(MIGRATIONS[step]):
+                    conn.execute(statement)
+            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+    return conn
+
+
+def _statements(script: str) -> list[str]:
+    return [s.strip() for s in script.split(";") if s.strip()]
+
+
+def connect_readonly(root: Path) -> sqlite3.Connection | None:
+    """A read-only connection for the workers, or None when there is no database."""
+    path = root / DB_NAME
+    if not path.exists():
+        return None
+    conn = sqlite3.connect(f"{path.as_uri()}?mode=ro", uri=True, timeout=30.0)
+    return conn
+
+
+@contextmanager
+def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any exception."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")

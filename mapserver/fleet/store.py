@@ -1,0 +1,663 @@
+"""The map store: building maps, their versions, the evidence of every bundle and the tracked
+changes (contract section 7).
+
+One process writes (the daemon's main process, or one ``mapserver`` command); workers only read
+(:func:`lookup`). Applying a bundle is one ``BEGIN IMMEDIATE`` transaction that also records
+that the bundle was applied, so a bundle counts once whatever crashes or repeated uploads
+happen. Files (versions, ``current.yaml``, the keepout mask, ``changes.yaml``) are written by
+rename and derived from the database; :meth:`FleetStore.sync` writes them again from it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import sqlite3
+import time
+from collections.abc import Callable, Iterable, Sequence
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from mapserver.bundle import BUNDLE_ID_RE, map_image_name, sha256_file
+from mapserver.config import UpdateConfig
+from mapserver.errors import StoreError
+from mapserver.fleet import evidence, publish, tracker
+from mapserver.fleet.changes import ChangeTracker
+from mapserver.fleet.db import connect, connect_readonly, transaction
+from mapserver.fleet.lattice import IntArray, Lattice, Window
+from mapserver.fleet.model import (
+    STATES,
+    ChangeInfo,
+    MapInfo,
+    MapLink,
+    Update,
+    VersionInfo,
+    now_utc,
+    utc_stamp,
+)
+from mapserver.fleet.observe import Observation
+from mapserver.fsio import dump_yaml, replace_atomic
+from mapserver.maps import FREE, OCCUPIED, load_map
+
+log = logging.getLogger(__name__)
+
+
+def lookup(root: Path, image_sha256: str) -> MapLink | None:
+    """The stored map one of whose versions has this image (sha256), read-only; None if none.
+
+    Run by the workers: they judge a bundle against the map's current version.
+    """
+    conn = connect_readonly(root)
+    if conn is None:
+        return None
+    try:
+        row = conn.execute(
+            "SELECT m.id, m.name, m.width, m.height, m.resolution, m.origin_x, m.origin_y, "
+            "v.version FROM versions v JOIN maps m ON m.id = v.map_id WHERE v.sha256 = ? "
+            "ORDER BY v.version LIMIT 1",
+            (image_sha256.lower(),),
+        ).fetchone()
+        if row is None:
+            return None
+        map_id, name, width, height, res, ox, oy, version = row
+        current, current_yaml = conn.execute(
+            "SELECT version, yaml FROM versions WHERE map_id = ? ORDER BY version DESC LIMIT 1",
+            (map_id,),
+        ).fetchone()
+    except sqlite3.DatabaseError as error:
+        raise StoreError(f"cannot read the map store: {error}", file=root) from None
+    finally:
+        conn.close()
+    return MapLink(
+        name, Lattice(width, height, res, ox, oy), version, current, root / name / current_yaml
+    )
+
+
+class FleetStore:
+    """The map store at ``root`` (the configuration's ``maps:``), with the update settings.
+
+    Opening it checks the database (missing while maps exist, unreadable, damaged: a
+    :class:`StoreError` that says how to recover).
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        settings: UpdateConfig | None = None,
+        *,
+        create: bool = True,
+        checkpoint: Callable[[str], None] | None = None,
+    ):
+        self.root = Path(root)
+        # Test hook: called at named steps ("evidence-applied" inside the bundle's transaction,
+        # "bundle-applied" after its commit, "version-written" before a version's commit).
+        self._checkpoint = checkpoint or (lambda name: None)
+        self.settings = settings or UpdateConfig()
+        self._conn = connect(self.root, create=create)
+        self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
+        # changes.yaml is rewritten after every update: each change's YAML text is kept and
+        # made again only when the change was touched (ids in _dirty).
+        self._docs: dict[int, dict[int, tuple[str, str, str]]] = {}
+        self._dirty: set[int] = set()
+        self._changes = ChangeTracker(self._conn, self.settings, self._dirty)
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> FleetStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- maps and versions ------------------------------------------------------------------
+
+    def add_map(self, name: str, map_yaml: Path, *, max_pixels: int = 100_000_000) -> VersionInfo:
+        """Register a building map as version 1 of ``name``. The map must load; nothing is
+        created otherwise. Its image is kept byte for byte (bundles match it by sha256)."""
+        if not BUNDLE_ID_RE.fullmatch(name):
+            raise StoreError(
+                f"invalid map name {name!r}: use letters, digits, '.', '_' and '-', starting "
+                "with a letter or digit"
+            )
+        if self._map_row(name, missing_ok=True) is not None:
+            raise StoreError(
+                f"a map named {name!r} is already in the store (see 'mapserver maps show {name}')"
+            )
+        map_yaml = Path(map_yaml)
+        m = load_map(map_yaml, max_pixels=max_pixels)  # MapFileError with the loader's message
+        image = map_yaml.parent / map_image_name(map_yaml)
+        document = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
+        folder = self.root / name
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = publish.version_stem(1)
+        image_dst = folder / f"{stem}{image.suffix.lower() or '.pgm'}"
+        tmp = folder / f".{image_dst.name}.tmp"
+        shutil.copyfile(image, tmp)
+        replace_atomic(image_dst, tmp.read_bytes())
+        tmp.unlink()
+        document["image"] = image_dst.name
+        yaml_dst = folder / f"{stem}.yaml"
+        replace_atomic(yaml_dst, yaml.safe_dump(document, sort_keys=False).encode())
+        digest = sha256_file(image_dst)
+        now = now_utc()
+        lattice = Lattice.of_map(m)
+        with transaction(self._conn):
+            cur = self._conn.execute(
+                "INSERT INTO maps (name, width, height, resolution, origin_x, origin_y, "
+                "origin_yaw, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (name, m.width, m.height, m.resolution, m.origin[0], m.origin[1], m.origin[2], now),
+            )
+            self._conn.execute(
+                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
+                "VALUES (?, 1, ?, ?, ?, ?, ?)",
+                (
+                    cur.lastrowid,
+                    now,
+                    yaml_dst.name,
+                    image_dst.name,
+                    digest,
+                    f"added from {map_yaml}",
+                ),
+            )
+        self._write_derived(name)
+        log.info(
+            "map %s: version 1 from %s (%dx%d cells at %.3f m)",
+            name,
+            map_yaml,
+            lattice.width,
+            lattice.height,
+            lattice.resolution,
+        )
+        return self.versions(name)[0]
+
+    def maps(self) -> list[MapInfo]:
+        return [
+            self.map_info(row[0])
+            for row in self._conn.execute("SELECT name FROM maps ORDER BY name")
+        ]
+
+    def map_info(self, name: str) -> MapInfo:
+        map_id, lattice, yaw, created = self._map(name)
+        counts = dict.fromkeys(STATES, 0)
+        for state, n in self._conn.execute(
+            "SELECT state, count(*) FROM changes WHERE map_id = ? GROUP BY state", (map_id,)
+        ):
+            counts[state] = n
+        bundles = self._conn.execute(
+            "SELECT count(*) FROM bundles WHERE map_id = ?", (map_id,)
+        ).fetchone()[0]
+        return MapInfo(name, self._current_version(map_id), lattice, yaw, created, counts, bundles)
+
+    def versions(self, name: str) -> list[VersionInfo]:
+        map_id = self._map(name)[0]
+        published: dict[int, list[int]] = {}
+        for cid, version in self._conn.execute(
+            "SELECT id, version FROM changes WHERE map_id = ? AND version IS NOT NULL ORDER BY id",
+            (map_id,),
+        ):
+            published.setdefault(version, []).append(cid)
+        return [
+            VersionInfo(
+                name, v, created, self.root / name / y, sha, note, tuple(published.get(v, ()))
+            )
+            for v, created, y, sha, note in self._conn.execute(
+                "SELECT version, created_at, yaml, sha256, note FROM versions WHERE map_id = ? "
+                "ORDER BY version",
+                (map_id,),
+            )
+        ]
+
+    def rollback(self, name: str, version: int) -> VersionInfo:
+        """Publish a NEW version equal to ``version``; history is never rewritten. Changes
+        published after it are no longer in the map: they become ``rejected`` (an operator
+        undid them), so that the same sightings do not publish them again."""
+        map_id, lattice, yaw, _ = self._map(name)
+        row = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()
+        if row is None:
+            known = self._current_version(map_id)
+            raise StoreError(f"map {name!r} has no version {version} (versions 1..{known})")
+        state = load_map(self.root / name / row[0]).state
+        undone = [
+            r[0]
+            for r in self._conn.execute(
+                "SELECT id FROM changes WHERE map_id = ? AND state = 'published' AND version > ?",
+                (map_id, version),
+            )
+        ]
+        new = self._publish_state(
+            map_id, name, lattice, yaw, state, f"rollback to version {version}", undone=undone
+        )
+        self._write_derived(name)
+        return next(v for v in self.versions(name) if v.version == new)
+
+    # -- changes ----------------------------------------------------------------------------
+
+    def changes(
+        self,
+        name: str | None = None,
+        *,
+        state: str | None = None,
+        ids: Iterable[int] | None = None,
+    ) -> list[ChangeInfo]:
+        if state is not None and state not in STATES:
+            raise StoreError(f"unknown state {state!r}: use one of {', '.join(STATES)}")
+        sql = (
+            "SELECT c.id, m.name, c.kind, c.state, c.polygon, c.first_seen, c.last_seen, "
+            "c.sessions, c.contradicted, c.version, c.note, c.updated_at FROM changes c "
+            "JOIN maps m ON m.id = c.map_id WHERE 1 = 1"
+        )
+        args: list[Any] = []
+        if name is not None:
+            sql += " AND c.map_id = ?"
+            args.append(self._map(name)[0])
+        if state is not None:
+            sql += " AND c.state = ?"
+            args.append(state)
+        if ids is not None:
+            wanted = sorted(set(ids))
+            if not wanted:
+                return []
+            sql += f" AND c.id IN ({','.join('?' * len(wanted))})"
+            args += wanted
+        rows = self._conn.execute(sql + " ORDER BY c.id", args).fetchall()
+        sightings: dict[int, list[tuple[str, str, str]]] = {}
+        ids = [r[0] for r in rows]
+        for chunk in range(0, len(ids), 500):
+            part = ids[chunk : chunk + 500]
+            q = ",".join("?" * len(part))
+            for cid, bundle, robot, stamp in self._conn.execute(
+                f"SELECT change_id, bundle_id, robot, stamp FROM sightings WHERE change_id IN ({q})",
+                part,
+            ):
+                sightings.setdefault(cid, []).append((stamp, bundle, robot))
+        out = []
+        for (
+            cid,
+            map_name,
+            kind,
+            st,
+            poly,
+            first,
+            last,
+            sessions,
+            contra,
+            version,
+            note,
+            upd,
+        ) in rows:
+            seen = sorted(sightings.get(cid, []))
+            out.append(
+                ChangeInfo(
+                    cid,
+                    map_name,
+                    kind,
+                    st,
+                    json.loads(poly),
+                    first,
+                    last,
+                    sessions,
+                    contra,
+                    sorted({r for _, _, r in seen}),
+                    [b for _, b, _ in seen],
+                    version,
+                    note,
+                    upd,
+                )
+            )
+        return out
+
+    def change(self, change_id: int) -> ChangeInfo:
+        change_id = self._changes.resolve_merged(change_id)
+        row = self._conn.execute(
+            "SELECT m.name FROM changes c JOIN maps m ON m.id = c.map_id WHERE c.id = ?",
+            (change_id,),
+        ).fetchone()
+        if row is None:
+            raise StoreError(f"no change {change_id} in the store (see 'mapserver changes list')")
+        return next(c for c in self.changes(row[0]) if c.id == change_id)
+
+    def approve(self, change_id: int) -> VersionInfo:
+        """Publish a confirmed change (review mode): a new version with it."""
+        info = self.change(change_id)
+        if info.state != "confirmed":
+            raise StoreError(
+                f"change {change_id} is {info.state}, not confirmed: only a confirmed change "
+                "can be approved"
+                + (
+                    " (it is still pending: more sessions must see it)"
+                    if info.state == "pending"
+                    else ""
+                )
+            )
+        map_id, lattice, yaw, _ = self._map(info.map)
+        version = self._publish_changes(
+            map_id, info.map, lattice, yaw, [info.id], note=f"approved change {info.id}"
+        )
+        self._write_derived(info.map)
+        return next(v for v in self.versions(info.map) if v.version == version)
+
+    def reject(self, change_id: int) -> ChangeInfo:
+        """Reject a pending or confirmed change: it is never published, and later sightings of
+        the same thing are counted on it instead of starting a new change."""
+        info = self.change(change_id)
+        if info.state not in ("pending", "confirmed"):
+            raise StoreError(
+                f"change {change_id} is {info.state}: only a pending or confirmed change can be rejected"
+            )
+        with transaction(self._conn):
+            self._conn.execute(
+                "UPDATE changes SET state = 'rejected', note = 'rejected by an operator', updated_at = ? WHERE id = ?",
+                (now_utc(), info.id),
+            )
+            self._dirty.add(info.id)
+        self._write_derived(info.map)
+        return self.change(change_id)
+
+    # -- bundles ----------------------------------------------------------------------------
+
+    def apply(self, obs: Observation) -> Update:
+        """Apply one bundle's observation: evidence, tracked changes, the persistence rule, and
+        in auto mode the publication of what it confirmed. Once per bundle (fingerprint)."""
+        start = time.perf_counter()
+        stamp = utc_stamp(obs.stamp)
+        map_id, lattice, yaw, _ = self._map(obs.map_name)
+        with transaction(self._conn):
+            row = self._conn.execute(
+                "SELECT outcome FROM bundles WHERE fingerprint = ?", (obs.fingerprint,)
+            ).fetchone()
+            if row is not None:
+                done = json.loads(row[0])
+                return Update(
+                    obs.map_name,
+                    obs.bundle_version,
+                    self._current_version(map_id),
+                    tuple(done["changes"]),
+                    repeated=True,
+                    seconds=time.perf_counter() - start,
+                )
+            hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
+            evidence.add_deltas(self._conn, map_id, obs.tiles, hour)
+            outcome = self._changes.track(map_id, lattice, obs, stamp)
+            self._checkpoint("evidence-applied")
+            self._conn.execute(
+                "INSERT INTO bundles (fingerprint, bundle_id, map_id, robot, stamp, applied_at, "
+                "judged_version, outcome) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    obs.fingerprint,
+                    obs.bundle_id,
+                    map_id,
+                    obs.robot,
+                    stamp,
+                    now_utc(),
+                    obs.judged_version,
+                    json.dumps(outcome),
+                ),
+            )
+        self._checkpoint("bundle-applied")
+        new_version = None
+        published: list[int] = []
+        warnings: list[str] = []
+        if self.settings.mode == "auto":
+            try:
+                published = self._confirmed_ids(map_id)
+                if published:
+                    new_version = self._publish_changes(
+                        map_id,
+                        obs.map_name,
+                        lattice,
+                        yaw,
+                        published,
+                        note=f"confirmed by {obs.bundle_id}",
+                    )
+            except OSError as error:
+                published = []
+                warnings.append(
+                    f"map {obs.map_name}: cannot publish a new version now ({error}); the confirmed changes wait"
+                )
+                log.error(
+                    "%s: cannot publish a new version of %s: %s", obs.bundle_id, obs.map_name, error
+                )
+        try:
+            self._write_derived(obs.map_name)
+        except OSError as error:
+            warnings.append(f"map {obs.map_name}: cannot rewrite changes.yaml / keepout ({error})")
+            log.error(
+                "%s: cannot write the files of map %s: %s", obs.bundle_id, obs.map_name, error
+            )
+        return Update(
+            obs.map_name,
+            obs.bundle_version,
+            self._current_version(map_id),
+            tuple(outcome["changes"]),
+            created=tuple(outcome["created"]),
+            supported=tuple(outcome["supported"]),
+            expired=tuple(outcome["expired"]),
+            confirmed=tuple(outcome["confirmed"]),
+            published=tuple(published),
+            new_version=new_version,
+            warnings=tuple(warnings),
+            seconds=time.perf_counter() - start,
+        )
+
+    def fold_evidence(self, *, max_tiles: int = 16) -> int:
+        """Fold the pending evidence of up to ``max_tiles`` tiles into their counters (the
+        daemon calls it when idle). Returns the deltas folded; 0 when nothing waits."""
+        tiles = evidence.pending_tiles(self._conn, max_tiles)
+        if not tiles:
+            return 0
+        folded = 0
+        with transaction(self._conn):
+            for map_id, tr, tc in tiles:
+                folded += evidence.fold(self._conn, map_id, [(tr, tc)])
+        return folded
+
+    def evidence(self, name: str, window: Window) -> evidence.TileEvidence:
+        """The evidence counters over a window of a map (cells [row, col] from its corner)."""
+        return evidence.read_window(self._conn, self._map(name)[0], window)
+
+    def sync(self) -> None:
+        """Bring the files in line with the database (after a crash between a commit and the
+        files, or a publication that failed on a full disk): publish what auto mode has
+        confirmed, then write current.yaml, the keepout mask and changes.yaml of every map."""
+        for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
+            map_id, lattice, yaw, _ = self._map(name)
+            if self.settings.mode == "auto":
+                ids = self._confirmed_ids(map_id)
+                if ids:
+                    self._publish_changes(map_id, name, lattice, yaw, ids, note="confirmed earlier")
+            self._write_derived(name, force=True)
+
+    # -- publishing -------------------------------------------------------------------------
+
+    def _confirmed_ids(self, map_id: int) -> list[int]:
+        return [
+            r[0]
+            for r in self._conn.execute(
+                "SELECT id FROM changes WHERE map_id = ? AND state = 'confirmed' ORDER BY id",
+                (map_id,),
+            )
+        ]
+
+    def _paint_cells(self, cid: int) -> tuple[str, IntArray]:
+        kind, sessions = self._conn.execute(
+            "SELECT kind, sessions FROM changes WHERE id = ?", (cid,)
+        ).fetchone()
+        need = min(self.settings.paint_min_sessions, sessions)
+        cells = np.array(
+            [
+                r[0]
+                for r in self._conn.execute(
+                    "SELECT cell FROM change_cells WHERE change_id = ? AND hits >= ?", (cid, need)
+                )
+            ],
+            np.int64,
+        )
+        return kind, cells
+
+    def _current_state(self, map_id: int, name: str) -> NDArray[np.uint8]:
+        version = self._current_version(map_id)
+        cached = self._states.get(map_id)
+        if cached is not None and cached[0] == version:
+            return cached[1]
+        y = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()[0]
+        state = load_map(self.root / name / y).state
+        state.flags.writeable = False
+        self._states[map_id] = (version, state)
+        return state
+
+    def _publish_changes(
+        self, map_id: int, name: str, lattice: Lattice, yaw: float, ids: list[int], *, note: str
+    ) -> int:
+        """A new version: the current one with the changes painted (an added change's cells
+        occupied, a removed one's free), only the cells their sessions saw changed."""
+        state = self._current_state(map_id, name).copy()
+        for cid in ids:
+            kind, cells = self._paint_cells(cid)
+            rows, cols = lattice.unflat(cells)
+            if kind == "added":
+                state[rows, cols] = OCCUPIED
+            else:
+                was = state[rows, cols] == OCCUPIED
+                state[rows[was], cols[was]] = FREE
+        return self._publish_state(map_id, name, lattice, yaw, state, note, published=ids)
+
+    def _publish_state(
+        self,
+        map_id: int,
+        name: str,
+        lattice: Lattice,
+        yaw: float,
+        state: NDArray[np.uint8],
+        note: str,
+        *,
+        published: Sequence[int] = (),
+        undone: Sequence[int] = (),
+    ) -> int:
+        version = self._current_version(map_id) + 1
+        folder = self.root / name
+        yaml_path, image = publish.write_version(folder, version, state, lattice, yaw)
+        digest = sha256_file(image)
+        now = now_utc()
+        self._checkpoint("version-written")
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (map_id, version, now, yaml_path.name, image.name, digest, note),
+            )
+            for cid in published:
+                self._conn.execute(
+                    "UPDATE changes SET state = 'published', version = ?, updated_at = ? WHERE id = ?",
+                    (version, now, cid),
+                )
+            for cid in undone:
+                self._conn.execute(
+                    "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
+                    (f"undone by {note}", now, cid),
+                )
+        self._dirty.update(published, undone)
+        frozen = state.copy()
+        frozen.flags.writeable = False
+        self._states[map_id] = (version, frozen)
+        publish.write_current(folder, yaml_path)
+        log.info("map %s: published version %d (%s)", name, version, note)
+        return version
+
+    def _write_derived(self, name: str, *, force: bool = False) -> None:
+        """current.yaml (force), the keepout mask (when its cells changed) and changes.yaml."""
+        map_id, lattice, yaw, _ = self._map(name)
+        folder = self.root / name
+        version = self._current_version(map_id)
+        if force or not (folder / publish.CURRENT).exists():
+            y = self._conn.execute(
+                "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+            ).fetchone()[0]
+            publish.write_current(folder, folder / y)
+        keep = [self._paint_cells(cid) for cid in self._confirmed_ids(map_id)]
+        cells = np.unique(
+            np.concatenate([c for k, c in keep if k == "added"] or [np.zeros(0, np.int64)])
+        )
+        sig = hashlib.sha256(cells.astype("<i8").tobytes()).hexdigest()
+        old = self._conn.execute("SELECT keepout_sig FROM maps WHERE id = ?", (map_id,)).fetchone()[
+            0
+        ]
+        if force or sig != old or not (folder / f"{publish.KEEPOUT}.yaml").exists():
+            publish.write_keepout(folder, cells, lattice, yaw)
+            self._conn.execute("UPDATE maps SET keepout_sig = ? WHERE id = ?", (sig, map_id))
+        self._write_changes(map_id, name, folder, version, force=force)
+
+    def _write_changes(
+        self, map_id: int, name: str, folder: Path, version: int, *, force: bool
+    ) -> None:
+        """changes.yaml: every tracked change, except expired ones that ended more than
+        ``update.expired_listed_days`` ago (the database keeps them all: 'mapserver changes
+        list --state expired')."""
+        docs = self._docs.get(map_id)
+        if docs is None or force:
+            docs = self._docs[map_id] = {}
+            fresh = self.changes(name)
+        else:
+            fresh = self.changes(name, ids=self._dirty)
+            for cid in self._dirty:
+                docs.pop(cid, None)  # merged away, or about to be made again
+        self._dirty.clear()
+        for c in fresh:
+            docs[c.id] = (c.state, c.updated_at, dump_yaml([c.document()]).decode("utf-8"))
+        cutoff = utc_stamp(
+            (
+                tracker.parse_stamp(now_utc()) - timedelta(days=self.settings.expired_listed_days)
+            ).isoformat()
+        )
+        for cid in [k for k, (st, upd, _) in docs.items() if st == "expired" and upd < cutoff]:
+            del docs[cid]
+        # Block style, as a person reads it (map names are plain words: no quoting needed).
+        head = f"format: 1\nmap: {name}\ncurrent_version: {version}\n".encode()
+        body = "".join(docs[cid][2] for cid in sorted(docs))
+        publish.write_changes_text(
+            folder, head + (b"changes:\n" + body.encode("utf-8") if body else b"changes: []\n")
+        )
+
+    # -- rows -------------------------------------------------------------------------------
+
+    def _map_row(self, name: str, *, missing_ok: bool = False) -> tuple[Any, ...] | None:
+        row = self._conn.execute(
+            "SELECT id, width, height, resolution, origin_x, origin_y, origin_yaw, created_at "
+            "FROM maps WHERE name = ?",
+            (name,),
+        ).fetchone()
+        if row is None and not missing_ok:
+            known = [r[0] for r in self._conn.execute("SELECT name FROM maps ORDER BY name")]
+            raise StoreError(
+                f"no map named {name!r} in the store"
+                + (
+                    f" (maps: {', '.join(known)})"
+                    if known
+                    else " (add one with 'mapserver maps add')"
+                )
+            )
+        return row  # type: ignore[no-any-return]
+
+    def _map(self, name: str) -> tuple[int, Lattice, float, str]:
+        row = self._map_row(name)
+        assert row is not None
+        map_id, w, h, res, ox, oy, yaw, created = row
+        return map_id, Lattice(w, h, res, ox, oy), yaw, created
+
+    def _current_version(self, map_id: int) -> int:
+        return int(
+            self._conn.execute(
+                "SELECT max(version) FROM versions WHERE map_id = ?", (map_id,)
+            ).fetchone()[0]
+        )

@@ -1,0 +1,330 @@
+"""The map store from planted evidence sequences (contract section 7): a person seen once, a
+wall seen three times over two days, a published wall seen gone, review mode, exactly once,
+late bundles, bad requests, a lost or damaged database, a full disk while publishing."""
+
+from __future__ import annotations
+
+import errno
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mapserver.config import UpdateConfig
+from mapserver.errors import MapFileError, StoreError
+from mapserver.fleet import publish
+from mapserver.fleet.store import FleetStore
+from mapserver.maps import FREE, OCCUPIED, load_map
+from tests.fleet_support import COLUMN, PERSON, WALL, Robot, building, cells, write_building
+
+AUTO = UpdateConfig(mode="auto")
+REVIEW = UpdateConfig(mode="review")
+
+
+@pytest.fixture
+def hall(tmp_path: Path) -> Path:
+    return write_building(tmp_path / "src")
+
+
+def new_store(tmp_path: Path, hall: Path, settings: UpdateConfig = AUTO) -> FleetStore:
+    store = FleetStore(tmp_path / "maps", settings)
+    store.add_map("hall", hall)
+    return store
+
+
+def current(tmp_path: Path) -> np.ndarray:
+    return load_map(tmp_path / "maps" / "hall" / "current.yaml").state
+
+
+def wall_seen(robot: Robot, hours: float, **kw: object) -> object:
+    return robot.observe(hours, added=(WALL,), found=(("added", WALL),), **kw)  # type: ignore[arg-type]
+
+
+def test_add_map_stores_version_1_byte_for_byte_and_current_points_at_it(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    folder = tmp_path / "maps" / "hall"
+    assert (folder / "v0001.pgm").read_bytes() == hall.with_suffix(".pgm").read_bytes()
+    assert yaml.safe_load((folder / "current.yaml").read_text())["image"] == "v0001.pgm"
+    assert np.array_equal(current(tmp_path), building())
+    keepout = load_map(folder / "keepout.yaml")
+    assert (keepout.state == FREE).all() and keepout.state.shape == (240, 400)
+    doc = yaml.safe_load((folder / "changes.yaml").read_text())
+    assert doc == {"format": 1, "map": "hall", "current_version": 1, "changes": []}
+    assert [v.version for v in store.versions("hall")] == [1]
+
+
+def test_a_person_seen_once_expires_when_the_next_bundle_sees_the_spot_free(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    first = store.apply(robot.observe(0, added=(PERSON,), found=(("added", PERSON),)))
+    assert len(first.created) == 1 and first.changes == first.created
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions) == ("pending", 1)
+    later = store.apply(robot.observe(2))
+    assert later.expired == first.created
+    (change,) = store.changes("hall")
+    assert change.state == "expired" and change.contradicted == 1
+    assert store.map_info("hall").current_version == 1
+    assert np.array_equal(current(tmp_path), building())
+
+
+def test_a_wall_seen_three_times_over_two_days_is_published_once(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    a, b = Robot("r1"), Robot("r2")
+    u1 = store.apply(wall_seen(a, 0))
+    u2 = store.apply(wall_seen(b, 6))
+    assert u2.supported == u1.created and u2.created == ()  # one change, two robots
+    assert store.changes("hall")[0].state == "pending"  # 2 sessions
+    u3 = store.apply(wall_seen(a, 30))
+    assert u3.confirmed == u1.created and u3.published == u1.created and u3.new_version == 2
+    (change,) = store.changes("hall")
+    assert (change.state, change.version, change.sessions) == ("published", 2, 3)
+    assert change.robots == ["r1", "r2"]
+    now = current(tmp_path)
+    expected = building()
+    expected[WALL] = OCCUPIED
+    assert np.array_equal(now, expected)  # the wall's cells, nothing else
+    # A bundle judged against version 2 finds nothing new there; version 1 bundles match v2 too.
+    u4 = store.apply(b.observe(40, added=(WALL,), judged_version=2))
+    assert u4.created == () and u4.new_version is None
+
+
+def test_a_published_version_differs_from_version_1_only_inside_its_changes(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        store.apply(
+            robot.observe(
+                hours,
+                added=(WALL,),
+                removed=(COLUMN,),
+                found=(("added", WALL), ("removed", COLUMN)),
+            )
+        )
+    folder = tmp_path / "maps" / "hall"
+    v1, v2 = load_map(folder / "v0001.yaml"), load_map(folder / "v0002.yaml")
+    inside = np.zeros(v1.state.shape, bool)
+    inside[WALL] = inside[COLUMN] = True
+    assert np.array_equal(v1.state[~inside], v2.state[~inside])
+    assert (v2.state[WALL] == OCCUPIED).all() and (v2.state[COLUMN] == FREE).all()
+    # map_saver's files: trinary values only, its YAML keys and thresholds, version 1's frame.
+    raw = (folder / "v0002.pgm").read_bytes()
+    assert raw.startswith(b"P5\n# CREATOR: map_saver.cpp 0.050 m/pix\n400 240\n255\n")
+    assert set(np.unique(np.frombuffer(raw[-400 * 240 :], np.uint8))) <= {0, 205, 254}
+    doc = yaml.safe_load((folder / "v0002.yaml").read_text())
+    assert doc == {
+        "image": "v0002.pgm",
+        "mode": "trinary",
+        "resolution": 0.05,
+        "origin": [0.0, 0.0, 0.0],
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+    }
+
+
+def test_a_published_wall_seen_gone_becomes_a_removal_that_needs_the_same_persistence(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        store.apply(wall_seen(robot, hours))
+    assert store.map_info("hall").current_version == 2
+    # The wall is taken away again: robots judged against v2 find it removed.
+    gone = dict(removed=(WALL,), found=(("removed", WALL),), judged_version=2)
+    u = store.apply(robot.observe(24, **gone))  # type: ignore[arg-type]
+    assert len(u.created) == 1 and u.new_version is None
+    store.apply(robot.observe(30, **gone))  # type: ignore[arg-type]
+    assert store.map_info("hall").current_version == 2  # 2 sessions over 6 h: not yet
+    u = store.apply(robot.observe(40, **gone))  # type: ignore[arg-type]
+    assert u.new_version == 3
+    assert np.array_equal(current(tmp_path), building())
+    kinds = [(c.kind, c.state, c.version) for c in store.changes("hall")]
+    assert kinds == [("added", "published", 2), ("removed", "published", 3)]
+
+
+def test_a_cart_parked_for_an_afternoon_is_never_confirmed(tmp_path: Path, hall: Path) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 1, 2, 3):  # four sessions, but within 3 hours
+        store.apply(robot.observe(hours, added=(PERSON,), found=(("added", PERSON),)))
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions) == ("pending", 4)
+    store.apply(robot.observe(20))  # gone the next morning
+    (change,) = store.changes("hall")
+    assert change.state == "expired"
+    assert store.map_info("hall").current_version == 1
+
+
+def test_review_mode_waits_for_approval_and_marks_the_keepout_mask(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        u = store.apply(wall_seen(robot, hours))
+    (cid,) = u.confirmed
+    assert u.new_version is None and store.changes("hall")[0].state == "confirmed"
+    keepout = load_map(tmp_path / "maps" / "hall" / "keepout.yaml").state
+    assert (keepout[WALL] == OCCUPIED).all() and (keepout == OCCUPIED).sum() == cells(WALL).size
+    version = store.approve(cid)
+    assert version.version == 2 and version.changes == (cid,)
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()
+    assert (load_map(tmp_path / "maps" / "hall" / "keepout.yaml").state == FREE).all()
+
+
+def test_a_rejected_change_absorbs_later_sightings(tmp_path: Path, hall: Path) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    (cid,) = store.apply(wall_seen(robot, 0)).created
+    assert store.reject(cid).state == "rejected"
+    for hours in (8, 16, 24):
+        u = store.apply(wall_seen(robot, hours))
+        assert u.created == () and u.changes == (cid,)
+    assert [c.state for c in store.changes("hall")] == ["rejected"]
+
+
+def test_bad_requests_are_refused_and_change_nothing(tmp_path: Path, hall: Path) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    (cid,) = store.apply(wall_seen(Robot(), 0)).created
+    before = (tmp_path / "maps" / "hall" / "changes.yaml").read_bytes()
+    with pytest.raises(StoreError, match="already in the store"):
+        store.add_map("hall", hall)
+    with pytest.raises(StoreError, match="no map named 'nope'"):
+        store.versions("nope")
+    with pytest.raises(StoreError, match=f"change {cid} is pending, not confirmed"):
+        store.approve(cid)
+    with pytest.raises(StoreError, match="no change 99"):
+        store.approve(99)
+    with pytest.raises(StoreError, match="has no version 5"):
+        store.rollback("hall", 5)
+    assert (tmp_path / "maps" / "hall" / "changes.yaml").read_bytes() == before
+    assert [v.version for v in store.versions("hall")] == [1]
+    broken = tmp_path / "broken.yaml"
+    broken.write_text(
+        "image: missing.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    with pytest.raises(MapFileError):
+        store.add_map("other", broken)
+    assert not (tmp_path / "maps" / "other").exists()
+    assert [m.name for m in store.maps()] == ["hall"]
+
+
+def test_each_bundle_counts_once_whatever_order_it_comes_in(tmp_path: Path, hall: Path) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    first = wall_seen(robot, 0)
+    store.apply(first)
+    again = store.apply(first)  # a repeated upload, or a restart after the commit
+    assert again.repeated and again.changes == store.apply(first).changes
+    store.apply(wall_seen(robot, 30))
+    late = store.apply(wall_seen(robot, 10))  # arrives last, stamped in between
+    (change,) = store.changes("hall")
+    assert change.sessions == 3 and change.state == "confirmed"
+    assert change.first_seen.endswith("08:00:00Z") and change.last_seen.startswith("2026-11-22T14")
+    assert late.confirmed == (change.id,)
+
+
+def test_a_late_bundle_that_saw_the_spot_free_does_not_expire_a_newer_sighting(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    store.apply(wall_seen(robot, 0))
+    store.apply(wall_seen(robot, 20))
+    store.apply(robot.observe(10))  # older than the last sighting: counted, but not the latest
+    (change,) = store.changes("hall")
+    assert change.state == "pending" and change.contradicted == 1
+
+
+def test_a_missing_database_refuses_with_how_to_recover(tmp_path: Path, hall: Path) -> None:
+    new_store(tmp_path, hall).close()
+    for name in ("store.db", "store.db-wal", "store.db-shm"):
+        (tmp_path / "maps" / name).unlink(missing_ok=True)
+    with pytest.raises(StoreError, match=r"database is missing.*restore .* from a backup"):
+        FleetStore(tmp_path / "maps", AUTO)
+    assert (tmp_path / "maps" / "hall" / "v0001.pgm").exists()
+
+
+def test_a_damaged_database_refuses_with_how_to_recover(tmp_path: Path, hall: Path) -> None:
+    new_store(tmp_path, hall).close()
+    db = tmp_path / "maps" / "store.db"
+    (tmp_path / "maps" / "store.db-wal").unlink(missing_ok=True)
+    db.write_bytes(b"this is not a database" * 100)
+    with pytest.raises(StoreError, match=r"unreadable.*register the maps again"):
+        FleetStore(tmp_path / "maps", AUTO)
+
+
+def test_a_full_disk_while_publishing_keeps_the_previous_current_and_publishes_later(
+    tmp_path: Path, hall: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(wall_seen(robot, 0))
+    store.apply(wall_seen(robot, 8))
+    before = (tmp_path / "maps" / "hall" / "current.yaml").read_bytes()
+    real = publish.write_version
+
+    def full(*args: object, **kw: object) -> object:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(publish, "write_version", full)
+    u = store.apply(wall_seen(robot, 16))
+    assert u.new_version is None and any("No space left" in w for w in u.warnings)
+    assert (tmp_path / "maps" / "hall" / "current.yaml").read_bytes() == before
+    assert store.changes("hall")[0].state == "confirmed"
+    monkeypatch.setattr(publish, "write_version", real)
+    store.sync()
+    assert store.map_info("hall").current_version == 2
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()
+
+
+def test_rollback_publishes_a_new_version_equal_to_the_old_one(tmp_path: Path, hall: Path) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        store.apply(wall_seen(robot, hours))
+    v = store.rollback("hall", 1)
+    assert v.version == 3 and np.array_equal(current(tmp_path), building())
+    assert [c.state for c in store.changes("hall")] == ["rejected"]
+    assert [x.version for x in store.versions("hall")] == [1, 2, 3]
+    # Version 2 is still there, untouched.
+    assert (load_map(tmp_path / "maps" / "hall" / "v0002.yaml").state[WALL] == OCCUPIED).all()
+
+
+def test_the_database_is_wal_with_foreign_keys(tmp_path: Path, hall: Path) -> None:
+    new_store(tmp_path, hall).close()
+    conn = sqlite3.connect(tmp_path / "maps" / "store.db")
+    assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert conn.execute("PRAGMA user_version").fetchone()[0] >= 1
+
+
+def test_two_parts_of_one_wall_merge_into_the_older_change_and_its_id_still_answers(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    top, bottom = (slice(60, 100), WALL[1]), (slice(140, 181), WALL[1])
+    # Each of the first two robots saw only its half of the hall.
+    north, south = (slice(0, 110), slice(0, 400)), (slice(130, 240), slice(0, 400))
+    (a,) = store.apply(robot.observe(0, added=(WALL,), found=(("added", top),), view=north)).created
+    (b,) = store.apply(
+        robot.observe(1, added=(WALL,), found=(("added", bottom),), view=south)
+    ).created
+    whole = store.apply(wall_seen(robot, 2))  # one difference over both parts
+    assert whole.changes == (a,) and whole.created == ()
+    (change,) = store.changes("hall")
+    assert change.id == a and change.sessions == 3 and store.change(b).id == a
+    rejected = store.reject(b)  # the merged id acts on the change it joined
+    assert (rejected.id, rejected.state) == (a, "rejected")
