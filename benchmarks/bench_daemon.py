@@ -220,7 +220,8 @@ def main() -> int:
     archived = {p.name for p in archive.iterdir() if not p.name.startswith(".")}
     rejected = {p.name for p in failed.iterdir() if not p.name.startswith(".")}
     results = {p.name for p in outbox.iterdir()}
-    left = [p.name for p in inbox.iterdir() if p.name != ".taken"]
+    # The daemon's own files there (its lock and status, .taken) are not uploads left behind.
+    left = [p.name for p in inbox.iterdir() if not p.name.startswith((".taken", ".mapserver."))]
     left += [p.name for p in (inbox / ".taken").iterdir()]
     if code != 0:
         problems.append(f"the daemon exited {code} on SIGTERM")
