@@ -145,8 +145,10 @@ def report(config: Config, *, now: float | None = None) -> Report:
     failed = sorted(_recent(config.failed, ERROR, since), key=lambda item: -item[1])
     out.failed_24h = len(failed)
     out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
-    for name in ("inbox", "outbox", "archive", "failed"):
-        path = getattr(config, name)
+    folders = {name: getattr(config, name) for name in ("inbox", "outbox", "archive", "failed")}
+    if config.maps is not None:
+        folders["maps"] = config.maps
+    for name, path in folders.items():
         try:
             usage = shutil.disk_usage(path)
             device: int | None = os.stat(path).st_dev

@@ -224,3 +224,23 @@ def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None
     assert lines[0] == f"daemon:    not running (no mapserver run holds {dirs['inbox']})"
     assert lines[1] == "queue:     1 uploading, 0 queued, 0 processing"
     assert lines[2] == "last 24 h: 1 results, 1 failed"
+
+
+def test_status_without_a_daemon_exits_3_and_counts_from_the_folders(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config_file = tmp_path / "mapserver.yaml"
+    config_file.write_text("maps: maps\n")
+    make_bundle(tmp_path / "inbox" / "uploading")
+    make_bundle(tmp_path / "inbox" / ".taken" / "taken-before")
+    (tmp_path / "maps").mkdir()
+    assert main(["status", "--config", str(config_file)]) == 3
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:3] == [
+        f"daemon:    not running (no mapserver run holds {tmp_path / 'inbox'})",
+        "queue:     1 uploading, 1 queued, 0 processing (taken before the daemon stopped: "
+        "processed at its next start)",
+        "last 24 h: 0 results, 0 failed",
+    ]
+    assert lines[-1].startswith(f"  maps     {tmp_path / 'maps'}  ") and "GiB free" in lines[-1]
+    assert lines[-3] == f"  archive  {tmp_path / 'archive'}  not there"
