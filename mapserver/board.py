@@ -1,4 +1,5 @@
-"""What each worker process is doing, in memory shared with the daemon's main process.
+"""What each worker process is doing, in memory shared with the daemon's main process; the
+worker's own memory limit; and the test hook that makes a worker go past the limits.
 
 Each worker of a pool owns one slot of a :class:`Board`: its pid, the bundle it works on (a token
 the main process gave the job), since when, and the pipeline stage it is in. Workers only write
@@ -13,13 +14,22 @@ before and after the rest of the slot.
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import time
 from dataclasses import dataclass
 from multiprocessing.context import BaseContext
 from typing import Any
 
+log = logging.getLogger(__name__)
+
 _STAGE_BYTES = 16
+
+FAULT_ENV = "MAPSERVER_TEST_FAULT"
+"""Test hook: ``<bundle id>@<stage>=<fault>``, comma-separated. A worker entering that stage of
+that bundle hangs (``hang``), grows its resident memory past ``worker_memory_mb`` and holds it
+(``hog``), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
+tested on a real daemon."""
 
 
 class _Slot(ctypes.Structure):
@@ -121,3 +131,51 @@ def mapped_bytes() -> int | None:
             return int(statm.read().split()[0]) * _PAGE
     except (OSError, IndexError, ValueError):
         return None
+
+
+# -- in a worker: its limit, and the test faults ----------------------------------------------
+
+
+def limit_address_space(limit_mb: int) -> None:
+    """RLIMIT_AS at the worker's size now plus ``limit_mb``: an allocation that would take it
+    further fails at once with MemoryError (the stage's out-of-memory failure), before the
+    main process, which watches resident memory about once a second, could see it, and before
+    the kernel's OOM killer picks a process."""
+    import resource
+
+    mapped = mapped_bytes()
+    if mapped is None:
+        return
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = mapped + limit_mb * 2**20
+    if hard != resource.RLIM_INFINITY:
+        limit = min(limit, hard)
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    except OSError as error:  # a seccomp filter without prlimit64, say: the watch remains
+        log.warning("worker %d: cannot limit its address space: %s", os.getpid(), error)
+
+
+def parse_faults(text: str) -> dict[tuple[str, str], str]:
+    """``FAULT_ENV``'s value as {(bundle id, stage): fault}."""
+    faults = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        where, _, fault = item.partition("=")
+        bundle_id, _, stage = where.partition("@")
+        faults[(bundle_id, stage)] = fault
+    return faults
+
+
+def inject_fault(fault: str, *, memory_limit_mb: int) -> None:
+    """Do ``fault`` (``hang``, ``hog``, ``alloc``; see ``FAULT_ENV``) in this worker."""
+    import numpy as np
+
+    limit = memory_limit_mb * 2**20
+    if fault == "alloc":
+        np.ones(2 * limit, np.uint8)
+    held = []
+    if fault == "hog":
+        while (resident_bytes(os.getpid()) or 0) < limit + 32 * 2**20:
+            held.append(np.ones(8 * 2**20, np.uint8))  # written: resident, not just mapped
+    while True:  # hang (and hold what it took) until the main process stops this worker
+        time.sleep(60)

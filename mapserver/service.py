@@ -36,7 +36,14 @@ from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
-from mapserver.board import Board, mapped_bytes, resident_bytes
+from mapserver.board import (
+    FAULT_ENV,
+    Board,
+    inject_fault,
+    limit_address_space,
+    parse_faults,
+    resident_bytes,
+)
 from mapserver.config import Config, check_paths
 from mapserver.errors import MapserverError, OutOfMemory
 from mapserver.inbox import (
@@ -62,12 +69,6 @@ log = logging.getLogger(__name__)
 CRASH_ENV = "MAPSERVER_TEST_CRASH_AT"
 """Test hook: the name of a checkpoint (see :class:`~mapserver.outbox.Store`, plus
 ``submitted``) at which the daemon kills itself with SIGKILL, to test recovery from each one."""
-
-FAULT_ENV = "MAPSERVER_TEST_FAULT"
-"""Test hook: ``<bundle id>@<stage>=<fault>``, comma-separated. A worker entering that stage of
-that bundle hangs (``hang``), grows its resident memory past ``worker_memory_mb`` and holds it
-(``hog``), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
-tested on a real daemon."""
 
 ProcessFn = Callable[..., "Outcome"]
 
@@ -166,32 +167,12 @@ def _init_worker(
         board.join()
     _WORKER.board = board
     _WORKER.memory_limit_mb = memory_limit_mb
-    _WORKER.faults = _parse_faults(os.environ.get(FAULT_ENV, ""))
+    _WORKER.faults = parse_faults(os.environ.get(FAULT_ENV, ""))
     on_stage(_entered_stage)
     if setup is not None:
         setup()
     if memory_limit_mb:
-        _limit_address_space(memory_limit_mb)
-
-
-def _limit_address_space(limit_mb: int) -> None:
-    """RLIMIT_AS at the worker's size now plus ``limit_mb``: an allocation that would take it
-    further fails at once with MemoryError (the stage's out-of-memory failure), before the
-    main process, which watches resident memory about once a second, could see it, and before
-    the kernel's OOM killer picks a process."""
-    import resource
-
-    mapped = mapped_bytes()
-    if mapped is None:
-        return
-    _, hard = resource.getrlimit(resource.RLIMIT_AS)
-    limit = mapped + limit_mb * 2**20
-    if hard != resource.RLIM_INFINITY:
-        limit = min(limit, hard)
-    try:
-        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
-    except OSError as error:  # a seccomp filter without prlimit64, say: the watch remains
-        log.warning("worker %d: cannot limit its address space: %s", os.getpid(), error)
+        limit_address_space(memory_limit_mb)
 
 
 def _entered_stage(name: str) -> None:
@@ -200,30 +181,7 @@ def _entered_stage(name: str) -> None:
         _WORKER.board.stage(name)
     fault = (_WORKER.faults or {}).get((_WORKER.bundle_id, name))
     if fault is not None:
-        _inject(fault)
-
-
-def _parse_faults(text: str) -> dict[tuple[str, str], str]:
-    faults = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        where, _, fault = item.partition("=")
-        bundle_id, _, stage = where.partition("@")
-        faults[(bundle_id, stage)] = fault
-    return faults
-
-
-def _inject(fault: str) -> None:
-    import numpy as np
-
-    limit = _WORKER.memory_limit_mb * 2**20
-    if fault == "alloc":
-        np.ones(2 * limit, np.uint8)
-    held = []
-    if fault == "hog":
-        while (resident_bytes(os.getpid()) or 0) < limit + 32 * 2**20:
-            held.append(np.ones(8 * 2**20, np.uint8))  # written: resident, not just mapped
-    while True:  # hang (and hold what it took) until the main process stops this worker
-        time.sleep(60)
+        inject_fault(fault, memory_limit_mb=_WORKER.memory_limit_mb)
 
 
 # How long watchdog's inotify emitter holds a move out of the inbox, waiting for its pair.

@@ -12,8 +12,8 @@ import yaml
 from daemon_support import Daemon, assert_settled, layout, make_bundle, upload, wait_until
 from daemon_support import write_config as write_daemon_config
 
+from mapserver.board import FAULT_ENV
 from mapserver.config import Config, available_memory_mb, parse_config
-from mapserver.service import FAULT_ENV
 
 
 def decided(root: Path, ids: list[str]) -> bool:
