@@ -177,6 +177,12 @@ def test_the_built_in_configuration_never_makes_folders_here_unseen(
     assert capsys.readouterr().err == ""
 
 
+def _counts(inbox: Path) -> dict[str, int]:
+    """Some counts from the daemon's status file."""
+    document = yaml.safe_load((inbox / ".mapserver.status").read_text())
+    return {key: document[key] for key in ("uploading", "results", "failed")}
+
+
 def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None:
     good = make_bundle(tmp_path / "src" / "good")
     bad = make_bundle(tmp_path / "src" / "bad", seed=1, checksums=False)
@@ -202,7 +208,7 @@ def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None
             what="both decided",
         )
         wait_until(
-            lambda: yaml.safe_load((dirs["inbox"] / ".mapserver.status").read_text())["failed"],
+            lambda: _counts(dirs["inbox"]) == {"uploading": 1, "results": 1, "failed": 1},
             timeout=10,
             what="the daemon's status file",
         )
