@@ -7,6 +7,7 @@ and ends with an example.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import logging
 import math
@@ -30,7 +31,7 @@ from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_con
 from mapserver.errors import MapFileError, MapserverError
 from mapserver.fleet.cli import open_store
 from mapserver.fleet.cli import register as register_fleet_commands
-from mapserver.lock import AlreadyRunning, daemon_pid
+from mapserver.lock import AlreadyRunning, daemon_pid, store_lock
 
 log = logging.getLogger("mapserver")
 
@@ -69,9 +70,13 @@ def _cmd_process(args: argparse.Namespace) -> int:
             f"mapserver: results go to {outbox} (the built-in default; choose with --outbox DIR "
             "or --config FILE)\n"
         )
-    store = open_store(config, create=True) if config.maps is not None else None
+    exits = contextlib.ExitStack()
+    store = None
+    if config.maps is not None:
+        exits.enter_context(store_lock(config.maps))  # refused while a daemon feeds the store
+        store = exits.enter_context(open_store(config, create=True))
     failures = 0
-    try:
+    with exits:
         # The fleet map counts bundles in stamp order: process them in that order.
         for bundle_dir in _by_stamp([Path(b) for b in args.bundles]):
             try:
@@ -93,9 +98,6 @@ def _cmd_process(args: argparse.Namespace) -> int:
             ]
             lines += [_difference_line(d) for d in differences]
             sys.stdout.write("\n".join(lines) + "\n")
-    finally:
-        if store is not None:
-            store.close()
     return 1 if failures else 0
 
 

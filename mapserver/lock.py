@@ -17,7 +17,7 @@ import errno
 import fcntl
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -84,19 +84,52 @@ def daemon_lock(config: Config) -> Iterator[Path]:
 
     Raises :class:`AlreadyRunning` at once when another process holds it.
     """
-    path = lock_path(config)
     try:
         config.inbox.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create the inbox: {error.strerror}", file=config.inbox) from None
+    with _hold(lock_path(config), lambda pid: AlreadyRunning(pid, config.inbox)) as path:
+        yield path
+
+
+class StoreOwned(MapserverError):
+    """Another process (a daemon, or a ``mapserver process``) feeds this map store."""
+
+    default_stage = "update"
+
+    def __init__(self, pid: int | None, root: Path) -> None:
+        self.pid = pid
+        shown = str(pid) if pid else "unknown"
+        super().__init__(
+            f"another mapserver (pid {shown}) feeds the map store {root}: bundles reach the "
+            "store through one process only (upload them to its inbox instead)"
+        )
+
+
+@contextlib.contextmanager
+def store_lock(root: Path) -> Iterator[Path]:
+    """Hold the feeding lock of the map store at ``root`` for the ``with`` block: the one
+    process that applies bundles to it (the daemon, or one ``mapserver process``). Review
+    commands (approve, reject, rollback) need no lock: the database serialises them."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create the map store: {error.strerror}", file=root) from None
+    with _hold(root / LOCK_NAME, lambda pid: StoreOwned(pid, root)) as path:
+        yield path
+
+
+@contextlib.contextmanager
+def _hold(path: Path, busy: Callable[[int | None], MapserverError]) -> Iterator[Path]:
+    try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o664)
     except OSError as error:
-        raise ConfigError(
-            f"cannot open the daemon's lock file: {error.strerror}", file=path
-        ) from None
+        raise ConfigError(f"cannot open the lock file: {error.strerror}", file=path) from None
     try:
         deadline = time.monotonic() + _ACQUIRE_FOR_S
         while not _try_lock(fd, fcntl.LOCK_EX):
             if time.monotonic() >= deadline:
-                raise AlreadyRunning(_read_pid(fd), config.inbox)
+                raise busy(_read_pid(fd))
             time.sleep(0.01)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)

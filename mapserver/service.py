@@ -55,7 +55,7 @@ from mapserver.inbox import (
     check_entry,
     scan,
 )
-from mapserver.lock import daemon_lock
+from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store, utc_now
 from mapserver.status import write_status
@@ -369,7 +369,7 @@ class Service:
                 "failed": self._config.failed,
             }
             missing = [f"{name} {path}" for name, path in folders.items() if not path.exists()]
-            with daemon_lock(self._config):
+            with daemon_lock(self._config), contextlib.ExitStack() as self._exits:
                 if missing:  # a misspelt path in the configuration must not pass unseen
                     log.warning(
                         "created %s: not there before; if robots upload elsewhere, correct the "
@@ -386,6 +386,8 @@ class Service:
         self._store.prepare()
         self._inbox_id = _identity(config.inbox)
         if config.maps is not None:
+            # One process feeds the store (held until exit: the kernel drops it on a crash).
+            self._exits.enter_context(store_lock(config.maps))
             # Refuses to start on a damaged or missing database, saying how to recover.
             from mapserver.fleet.store import FleetStore
 

@@ -197,3 +197,41 @@ def test_a_daemon_refuses_to_start_on_a_damaged_store_and_says_how_to_recover(
         log = daemon.log()
     assert "store.db" in log and "restore" in log and "mapserver maps add" in log, log
     assert (tmp_path / "maps" / "site" / "v0001.pgm").is_file()  # the versions are untouched
+
+
+def test_process_is_refused_while_a_daemon_feeds_the_store_and_review_commands_are_not(
+    tmp_path: Path,
+) -> None:
+    import subprocess
+    import sys
+
+    config, sources = setup(tmp_path, 1)
+    other = tmp_path / "other.yaml"  # another inbox, the same store
+    other.write_text(yaml.safe_dump({"maps": "maps", "outbox": "out2", "inbox": "inbox2"}))
+    with Daemon(config) as daemon:
+        daemon.wait_ready()
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mapserver.cli",
+                "process",
+                "--config",
+                str(other),
+                str(sources["run-0"]),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert done.returncode == 1
+        assert f"(pid {daemon.process.pid}) feeds the map store" in done.stderr, done.stderr
+        listed = subprocess.run(
+            [sys.executable, "-m", "mapserver.cli", "changes", "list", "--config", str(other)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert listed.returncode == 0, listed.stderr
+        assert daemon.stop() == 0
+    assert not (tmp_path / "out2").exists()

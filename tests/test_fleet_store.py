@@ -328,3 +328,18 @@ def test_two_parts_of_one_wall_merge_into_the_older_change_and_its_id_still_answ
     assert change.id == a and change.sessions == 3 and store.change(b).id == a
     rejected = store.reject(b)  # the merged id acts on the change it joined
     assert (rejected.id, rejected.state) == (a, "rejected")
+
+
+def test_a_change_approved_by_another_process_shows_in_the_daemons_next_changes_yaml(
+    tmp_path: Path, hall: Path
+) -> None:
+    daemon = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = daemon.apply(wall_seen(robot, hours)).changes
+    with FleetStore(tmp_path / "maps", REVIEW) as operator:  # the CLI or the web, meanwhile
+        operator.approve(cid)
+    daemon.apply(robot.observe(30, view=(slice(0, 20), slice(0, 20))))  # far from the wall
+    doc = yaml.safe_load((tmp_path / "maps" / "hall" / "changes.yaml").read_text())
+    assert doc["current_version"] == 2
+    assert [(c["id"], c["state"], c["version"]) for c in doc["changes"]] == [(cid, "published", 2)]

@@ -106,6 +106,9 @@ class FleetStore:
         # made again only when the change was touched (ids in _dirty).
         self._docs: dict[int, dict[int, tuple[str, str, str]]] = {}
         self._dirty: set[int] = set()
+        # Another process (an operator's approve, the web) may change the store: SQLite's
+        # data_version changes when another connection commits, and the cached lines go.
+        self._data_version = self._conn.execute("PRAGMA data_version").fetchone()[0]
         self._changes = ChangeTracker(self._conn, self.settings, self._dirty)
 
     def close(self) -> None:
@@ -604,6 +607,10 @@ class FleetStore:
         """changes.yaml: every tracked change, except expired ones that ended more than
         ``update.expired_listed_days`` ago (the database keeps them all: 'mapserver changes
         list --state expired')."""
+        version_now = self._conn.execute("PRAGMA data_version").fetchone()[0]
+        if version_now != self._data_version:
+            self._docs.clear()
+            self._data_version = version_now
         docs = self._docs.get(map_id)
         if docs is None or force:
             docs = self._docs[map_id] = {}
