@@ -193,7 +193,35 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if _built_in_config(args):
         log.warning("no --config: the built-in defaults, with every folder in %s", Path.cwd())
     setup = functools.partial(_setup_daemon_logging, config.log_level)
-    return Service(config, worker_setup=setup).run()
+    web = None
+    if config.web is not None and config.web.with_daemon and not args.no_web:
+        from mapserver.web.server import make_server
+
+        web = make_server(config)  # refuses a bad address or token before the daemon starts
+        web.start_thread()
+        log.info("web: serving %s", web.url)
+    try:
+        return Service(config, worker_setup=setup).run()
+    finally:
+        if web is not None:
+            web.stop()
+
+
+def _cmd_web(args: argparse.Namespace) -> int:
+    from mapserver.web.server import make_server
+
+    config = load_config(args.config)
+    if args.listen:
+        from mapserver.config import WebConfig
+
+        web = (config.web or WebConfig()).model_copy(update={"listen": args.listen})
+        config = config.model_copy(update={"web": web})
+    _setup_daemon_logging(config.log_level)
+    server = make_server(config)
+    log.info("web: serving %s (Ctrl-C stops)", server.url)
+    sys.stdout.flush()
+    server.run()
+    return 0
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -621,7 +649,30 @@ def build_parser() -> argparse.ArgumentParser:
         "  mapserver run --config /etc/mapserver/mapserver.yaml",
     )
     p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument(
+        "--no-web",
+        action="store_true",
+        help="do not serve the web pages even when the configuration's web: is set (systemd runs "
+        "them in a unit of their own)",
+    )
     p.set_defaults(func=_cmd_run)
+
+    p = _command(
+        sub,
+        "web",
+        "the operator's web pages, HTTP API and /metrics (until Ctrl-C)",
+        "Serve the dashboard, each bundle's result, the maps with their tracked changes and "
+        "versions (approve, reject, rollback with the review token), the JSON API (its schema "
+        "at /docs), current.yaml for robots (with ETag), /healthz and /metrics (Prometheus). "
+        "Reads the folders and the map store; only the review actions write. The address is "
+        "web.listen (127.0.0.1:8350 by default); any other than the loopback needs "
+        "web.token_file.",
+        "  mapserver web --config /etc/mapserver/mapserver.yaml\n"
+        "  curl -s http://127.0.0.1:8350/api/maps",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--listen", default=None, metavar="HOST:PORT", help="instead of web.listen")
+    p.set_defaults(func=_cmd_web)
 
     p = _command(
         sub,

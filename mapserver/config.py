@@ -155,6 +155,21 @@ class UpdateConfig(_Frozen):
     sessions saw that cell changed (or all of them, when fewer)."""
 
 
+class WebConfig(_Frozen):
+    """The operator's web pages, HTTP API and metrics (``mapserver web``)."""
+
+    listen: str = Field("127.0.0.1:8350", pattern=r"^[^\s:]+:\d{1,5}$|^\[[0-9a-fA-F:]+\]:\d{1,5}$")
+    """HOST:PORT to serve on. Any address but the loopback needs ``token_file``."""
+    token_file: Path | None = None
+    """A file holding the review token (approve, reject, rollback need it; read-only pages
+    don't). Without it the review actions are off."""
+    with_daemon: bool = True
+    """``mapserver run`` serves the pages too (a systemd deployment runs ``mapserver web`` in its
+    own unit instead, and starts the daemon with ``--no-web``)."""
+    page_size: int = Field(50, ge=5, le=1000)
+    """Rows per page of every list."""
+
+
 class Config(_Frozen):
     """The whole configuration. The first keys are contract section 6."""
 
@@ -179,6 +194,9 @@ class Config(_Frozen):
     maps: Path | None = None
     """The map store (contract section 7); null turns the fleet map's update off."""
     update: UpdateConfig = UpdateConfig()
+    web: WebConfig | None = None
+    """The web pages and API; null (the default) turns them off for ``mapserver run``
+    (``mapserver web`` then serves with the defaults)."""
     pipeline: PipelineConfig = PipelineConfig()
 
     def resolved(self, base_dir: Path) -> Config:
@@ -188,7 +206,15 @@ class Config(_Frozen):
             value = getattr(self, key)
             if value is not None:
                 updates[key] = (base_dir / value).resolve() if not value.is_absolute() else value
-        return self.model_copy(update=updates)
+        resolved = self.model_copy(update=updates)
+        if self.web is not None and self.web.token_file is not None:
+            token = self.web.token_file
+            if not token.is_absolute():
+                token = (base_dir / token).resolve()
+            resolved = resolved.model_copy(
+                update={"web": self.web.model_copy(update={"token_file": token})}
+            )
+        return resolved
 
     def worker_count(self) -> int:
         """``workers``, with 0 meaning the number of cores."""

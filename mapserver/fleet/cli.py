@@ -81,7 +81,7 @@ def _cmd_maps_show(args: argparse.Namespace) -> int:
 
 def _cmd_maps_rollback(args: argparse.Namespace) -> int:
     with open_store(load_config(args.config)) as store:
-        v = store.rollback(args.name, args.version)
+        v = store.rollback(args.name, args.version, actor=_actor())
     sys.stdout.write(
         f"map {v.map}: published version {v.version}, equal to version {args.version} "
         f"-> {v.yaml.parent / 'current.yaml'}\n"
@@ -116,7 +116,7 @@ def _cmd_changes_list(args: argparse.Namespace) -> int:
 
 def _cmd_changes_approve(args: argparse.Namespace) -> int:
     with open_store(load_config(args.config)) as store:
-        v = store.approve(args.id)
+        v = store.approve(args.id, actor=_actor())
     sys.stdout.write(
         f"change {args.id} approved: map {v.map} version {v.version} published "
         f"-> {v.yaml.parent / 'current.yaml'}\n"
@@ -126,9 +126,19 @@ def _cmd_changes_approve(args: argparse.Namespace) -> int:
 
 def _cmd_changes_reject(args: argparse.Namespace) -> int:
     with open_store(load_config(args.config)) as store:
-        c = store.reject(args.id)
+        c = store.reject(args.id, actor=_actor())
     sys.stdout.write(f"change {c.id} rejected: it will not be published\n")
     return 0
+
+
+def _actor() -> str:
+    """Who runs this command, for the change's history."""
+    import getpass
+
+    try:
+        return f"{getpass.getuser()} (command line)"
+    except (KeyError, OSError):
+        return "command line"
 
 
 def _positive_int(text: str) -> int:

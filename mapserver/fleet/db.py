@@ -108,6 +108,18 @@ MIGRATIONS: tuple[str, ...] = (
     );
     CREATE INDEX evidence_deltas_by_tile ON evidence_deltas(map_id, tile_row, tile_col);
     """,
+    # 2: who did what to a change, and when (review actions, publications).
+    """
+    CREATE TABLE change_events (
+        id INTEGER PRIMARY KEY,
+        change_id INTEGER NOT NULL,
+        at TEXT NOT NULL,
+        actor TEXT NOT NULL,
+        action TEXT NOT NULL,
+        detail TEXT NOT NULL DEFAULT ''
+    );
+    CREATE INDEX change_events_by_change ON change_events(change_id);
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 

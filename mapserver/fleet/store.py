@@ -218,7 +218,7 @@ class FleetStore:
             )
         ]
 
-    def rollback(self, name: str, version: int) -> VersionInfo:
+    def rollback(self, name: str, version: int, *, actor: str = "operator") -> VersionInfo:
         """Publish a NEW version equal to ``version``; history is never rewritten. Changes
         published after it are no longer in the map: they become ``rejected`` (an operator
         undid them), so that the same sightings do not publish them again."""
@@ -238,7 +238,14 @@ class FleetStore:
             )
         ]
         new = self._publish_state(
-            map_id, name, lattice, yaw, state, f"rollback to version {version}", undone=undone
+            map_id,
+            name,
+            lattice,
+            yaw,
+            state,
+            f"rollback to version {version} by {actor}",
+            undone=undone,
+            actor=actor,
         )
         self._write_derived(name)
         return next(v for v in self.versions(name) if v.version == new)
@@ -329,7 +336,7 @@ class FleetStore:
             raise StoreError(f"no change {change_id} in the store (see 'mapserver changes list')")
         return next(c for c in self.changes(row[0]) if c.id == change_id)
 
-    def approve(self, change_id: int) -> VersionInfo:
+    def approve(self, change_id: int, *, actor: str = "operator") -> VersionInfo:
         """Publish a confirmed change (review mode): a new version with it."""
         info = self.change(change_id)
         if info.state != "confirmed":
@@ -344,12 +351,18 @@ class FleetStore:
             )
         map_id, lattice, yaw, _ = self._map(info.map)
         version = self._publish_changes(
-            map_id, info.map, lattice, yaw, [info.id], note=f"approved change {info.id}"
+            map_id,
+            info.map,
+            lattice,
+            yaw,
+            [info.id],
+            note=f"change {info.id} approved by {actor}",
+            actor=actor,
         )
         self._write_derived(info.map)
         return next(v for v in self.versions(info.map) if v.version == version)
 
-    def reject(self, change_id: int) -> ChangeInfo:
+    def reject(self, change_id: int, *, actor: str = "operator") -> ChangeInfo:
         """Reject a pending or confirmed change: it is never published, and later sightings of
         the same thing are counted on it instead of starting a new change."""
         info = self.change(change_id)
@@ -359,12 +372,31 @@ class FleetStore:
             )
         with transaction(self._conn):
             self._conn.execute(
-                "UPDATE changes SET state = 'rejected', note = 'rejected by an operator', updated_at = ? WHERE id = ?",
-                (now_utc(), info.id),
+                "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
+                (f"rejected by {actor}", now_utc(), info.id),
             )
+            self._event(info.id, actor, "rejected")
             self._dirty.add(info.id)
         self._write_derived(info.map)
         return self.change(change_id)
+
+    def history(self, change_id: int) -> list[dict[str, str]]:
+        """Who did what to a change, and when (oldest first): review actions and publications."""
+        change_id = self._changes.resolve_merged(change_id)
+        return [
+            {"at": at, "actor": actor, "action": action, "detail": detail}
+            for at, actor, action, detail in self._conn.execute(
+                "SELECT at, actor, action, detail FROM change_events WHERE change_id = ? "
+                "ORDER BY id",
+                (change_id,),
+            )
+        ]
+
+    def _event(self, change_id: int, actor: str, action: str, detail: str = "") -> None:
+        self._conn.execute(
+            "INSERT INTO change_events (change_id, at, actor, action, detail) VALUES (?, ?, ?, ?, ?)",
+            (change_id, now_utc(), actor, action, detail),
+        )
 
     # -- bundles ----------------------------------------------------------------------------
 
@@ -521,7 +553,15 @@ class FleetStore:
         return state
 
     def _publish_changes(
-        self, map_id: int, name: str, lattice: Lattice, yaw: float, ids: list[int], *, note: str
+        self,
+        map_id: int,
+        name: str,
+        lattice: Lattice,
+        yaw: float,
+        ids: list[int],
+        *,
+        note: str,
+        actor: str = "mapserver",
     ) -> int:
         """A new version: the current one with the changes painted (an added change's cells
         occupied, a removed one's free), only the cells their sessions saw changed."""
@@ -534,7 +574,9 @@ class FleetStore:
             else:
                 was = state[rows, cols] == OCCUPIED
                 state[rows[was], cols[was]] = FREE
-        return self._publish_state(map_id, name, lattice, yaw, state, note, published=ids)
+        return self._publish_state(
+            map_id, name, lattice, yaw, state, note, published=ids, actor=actor
+        )
 
     def _publish_state(
         self,
@@ -547,6 +589,7 @@ class FleetStore:
         *,
         published: Sequence[int] = (),
         undone: Sequence[int] = (),
+        actor: str = "mapserver",
     ) -> int:
         version = self._current_version(map_id) + 1
         folder = self.root / name
@@ -565,11 +608,14 @@ class FleetStore:
                     "UPDATE changes SET state = 'published', version = ?, updated_at = ? WHERE id = ?",
                     (version, now, cid),
                 )
+                action = "approved" if actor != "mapserver" else "published"
+                self._event(cid, actor, action, f"in version {version}")
             for cid in undone:
                 self._conn.execute(
                     "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
                     (f"undone by {note}", now, cid),
                 )
+                self._event(cid, actor, "rolled back", f"version {version}: {note}")
         self._dirty.update(published, undone)
         frozen = state.copy()
         frozen.flags.writeable = False
