@@ -214,6 +214,11 @@ class _Pictures:
         return value
 
 
+def _when(stamp: str) -> str:
+    """``2026-11-21T10:15:00Z`` as ``11-21 10:15``: short enough for a table cell."""
+    return stamp[5:16].replace("T", " ") if len(stamp) >= 16 else stamp
+
+
 def _day_ago() -> str:
     return (datetime.now(timezone.utc) - timedelta(days=1)).isoformat().replace("+00:00", "Z")
 
@@ -229,6 +234,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     etags: dict[tuple[str, int, int], str] = {}
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.globals.update(version=__version__, state_colours=pictures.STATE_COLOURS)
+    templates.env.filters["when"] = _when
     app = FastAPI(
         title="mapserver",
         version=__version__,

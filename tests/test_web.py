@@ -1,0 +1,212 @@
+"""The web pages and the HTTP API through an in-process client, on a store built by processing
+the depot samples: what an operator sees, what a robot fetches, and who may change what."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
+from mapserver.config import Config
+from mapserver.errors import ConfigError
+from mapserver.web.app import create_app
+from mapserver.web.server import make_server
+from tests.web_support import DEPOT, TOKEN, build_site, copy_results
+
+pytestmark = pytest.mark.skipif(len(DEPOT) < 3, reason="the depot samples are not shipped")
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Config:
+    return build_site(tmp_path_factory.mktemp("site"))
+
+
+@pytest.fixture
+def fresh(tmp_path: Path) -> Config:
+    """A site of its own, for the tests that change it."""
+    return build_site(tmp_path / "site")
+
+
+def client(config: Config) -> TestClient:
+    return TestClient(create_app(config))
+
+
+def confirmed(c: TestClient) -> list[int]:
+    page = c.get("/api/maps/depot/changes", params={"state": "confirmed"}).json()
+    return [item["id"] for item in page["items"]]
+
+
+def test_the_dashboard_shows_queue_robots_maps_and_failures(site: Config) -> None:
+    page = client(site).get("/")
+    assert page.status_code == 200
+    html = page.text
+    assert "The daemon is not running" in html  # no mapserver run in this test
+    for robot in ("demo-01", "demo-03"):
+        assert robot in html
+    assert 'href="/maps/depot"' in html and "depot-demo-04" in html
+    assert "broken-upload" in html and "missing key" in html
+
+
+def test_a_bundle_page_shows_its_overlay_differences_and_change_ids(site: Config) -> None:
+    c = client(site)
+    page = c.get("/bundles/depot-demo-01")
+    assert page.status_code == 200
+    result = yaml.safe_load((site.outbox / "depot-demo-01" / "result.yaml").read_text())
+    for d in result["differences"]:
+        assert f'href="/changes/{d["change"]}"' in page.text
+    image = c.get("/bundles/depot-demo-01/overlay.png")
+    assert image.content == (site.outbox / "depot-demo-01" / "overlay.png").read_bytes()
+    failed = c.get("/bundles/broken-upload")
+    assert failed.status_code == 200 and "missing key" in failed.text
+
+
+def test_the_map_page_lists_changes_by_state_and_the_versions(site: Config) -> None:
+    c = client(site)
+    page = c.get("/maps/depot")
+    assert page.status_code == 200 and "Map depot" in page.text
+    ids = confirmed(c)
+    assert ids and all(f'href="/changes/{i}"' in page.text for i in ids)
+    only = c.get("/maps/depot", params={"state": "expired"}).text
+    assert all(f'href="/changes/{i}"' not in only for i in ids)
+    picture = c.get("/maps/depot/picture.png")
+    assert picture.status_code == 200 and picture.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_lists_are_paginated_by_key_without_repeats_or_gaps(tmp_path: Path) -> None:
+    config = build_site(tmp_path / "site", page_size=5)
+    extra = copy_results(config, 12)
+    c = client(config)
+    seen: list[str] = []
+    cursor = None
+    while True:
+        page = c.get(
+            "/api/bundles", params={"limit": 5, **({"before": cursor} if cursor else {})}
+        ).json()
+        seen += [item["bundle"] for item in page["items"]]
+        cursor = page["next"]
+        if cursor is None:
+            break
+    assert len(seen) == len(set(seen)) == 12 + len(DEPOT)
+    assert set(extra) <= set(seen)
+    times = [c.get(f"/api/bundles/{b}").json()["processed_at"] for b in seen]
+    assert times == sorted(times, reverse=True)
+    html = c.get("/bundles").text
+    assert "Older" in html
+
+
+def test_robots_fetch_current_yaml_and_images_byte_for_byte_with_etags(site: Config) -> None:
+    c = client(site)
+    assert site.maps is not None
+    got = c.get("/maps/depot/current.yaml")
+    assert got.status_code == 200
+    assert got.content == (site.maps / "depot" / "current.yaml").read_bytes()
+    tag = got.headers["etag"]
+    again = c.get("/maps/depot/current.yaml", headers={"If-None-Match": tag})
+    assert again.status_code == 304 and again.content == b""
+    image_name = yaml.safe_load(got.content)["image"]
+    image = c.get(f"/maps/depot/files/{image_name}")
+    assert (
+        hashlib.sha256(image.content).hexdigest()
+        == hashlib.sha256((site.maps / "depot" / image_name).read_bytes()).hexdigest()
+    )
+
+
+def test_paths_from_requests_never_leave_the_folders(site: Config, tmp_path: Path) -> None:
+    c = client(site)
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(b"\x89PNG secret")
+    os.symlink(tmp_path, site.outbox / "sneaky")
+    for url in (
+        "/bundles/..%2F..%2Fetc/overlay.png",
+        "/bundles/sneaky/overlay.png",
+        "/maps/depot/files/..%2Fstore.db",
+        "/maps/depot/files/.mapserver.lock",
+        "/api/bundles/..",
+        "/maps/..%2F..%2Fetc/current.yaml",
+    ):
+        r = c.get(url)
+        assert r.status_code in (404, 422), url
+        assert b"secret" not in r.content
+
+
+def test_review_actions_need_the_token(fresh: Config) -> None:
+    c = client(fresh)
+    (cid, *_) = confirmed(c)
+    assert c.post(f"/api/changes/{cid}/approve").status_code == 401
+    bad = c.post(f"/api/changes/{cid}/approve", headers={"Authorization": "Bearer " + "y" * 26})
+    assert bad.status_code == 401
+    assert c.get("/api/maps/depot").json()["current_version"] == 1
+    ok = c.post(f"/api/changes/{cid}/approve", headers=AUTH)
+    assert ok.status_code == 200 and ok.json()["version"] == 2
+    change = c.get(f"/api/changes/{cid}").json()
+    assert change["state"] == "published" and change["history"][0]["actor"] == "api (token)"
+    again = c.post(f"/api/changes/{cid}/approve", headers=AUTH)
+    assert again.status_code == 409 and "not confirmed" in again.text
+    assert c.post("/api/changes/9999/reject", headers=AUTH).status_code == 404
+    rollback = c.post("/api/maps/depot/rollback", json={"version": 1}, headers=AUTH)
+    assert rollback.status_code == 200 and rollback.json()["version"] == 3
+
+
+def test_forms_need_a_signed_session_and_a_csrf_token(fresh: Config) -> None:
+    c = client(fresh)
+    (cid, *_) = confirmed(c)
+    assert c.post(f"/changes/{cid}/approve", data={"csrf": "x"}).status_code == 401
+    wrong = c.post("/login", data={"token": "nope" * 5, "name": "alice"}, follow_redirects=False)
+    assert wrong.status_code == 303 and "error=token" in wrong.headers["location"]
+    signed = c.post("/login", data={"token": TOKEN, "name": "alice"}, follow_redirects=False)
+    assert signed.status_code == 303 and "mapserver_session" in signed.headers["set-cookie"]
+    assert "samesite=strict" in signed.headers["set-cookie"].lower()
+    assert c.post(f"/changes/{cid}/approve", data={"csrf": "forged"}).status_code == 403
+    page = c.get("/maps/depot").text
+    csrf = page.split('name="csrf" value="', 1)[1].split('"', 1)[0]
+    done = c.post(f"/changes/{cid}/approve", data={"csrf": csrf}, follow_redirects=False)
+    assert done.status_code == 303
+    history = c.get(f"/api/changes/{cid}").json()["history"]
+    assert history[-1]["actor"] == "alice (web)" and history[-1]["action"] == "approved"
+    assert "version 2" in c.get("/maps/depot").text
+
+
+def test_a_non_loopback_address_without_a_token_is_refused(site: Config) -> None:
+    from mapserver.config import WebConfig
+
+    open_web = site.model_copy(update={"web": WebConfig(listen="0.0.0.0:8350")})
+    with pytest.raises(ConfigError, match=r"without web\.token_file"):
+        make_server(open_web)
+    local = site.model_copy(update={"web": WebConfig(listen="127.0.0.1:8399")})
+    assert make_server(local).url == "http://127.0.0.1:8399/"
+
+
+def test_metrics_count_bundles_changes_and_versions(site: Config) -> None:
+    text = client(site).get("/metrics").text
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    processed = families["mapserver_bundles_processed"].samples[0].value
+    assert processed == len(DEPOT)
+    failed = {s.labels["stage"]: s.value for s in families["mapserver_bundles_failed"].samples}
+    assert failed == {"bundle": 1}
+    states = {
+        s.labels["state"]: s.value
+        for s in families["mapserver_changes"].samples
+        if s.labels["map"] == "depot"
+    }
+    assert states["confirmed"] >= 3 and states["published"] == 0
+    stages = {s.labels["stage"] for s in families["mapserver_stage_duration_seconds"].samples}
+    assert {"align", "diff", "update"} <= stages
+    assert families["mapserver_daemon_up"].samples[0].value == 0
+    assert client(site).get("/healthz").json()["results_indexed"] == len(DEPOT)
+
+
+def test_the_openapi_schema_documents_the_api(site: Config) -> None:
+    schema = client(site).get("/openapi.json").json()
+    for path in (
+        "/api/bundles",
+        "/api/maps/{name}/changes",
+        "/api/changes/{change_id}/approve",
+        "/maps/{name}/current.yaml",
+    ):
+        assert path in schema["paths"], path
