@@ -652,7 +652,9 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
         def draw() -> bytes | None:
             return pictures.version_change(
-                load_map(versions[version - 1].yaml).state, load_map(versions[version].yaml).state
+                load_map(versions[version - 1].yaml).state,
+                load_map(versions[version].yaml).state,
+                labels=(f"version {version - 1}", f"version {version}"),
             )
 
         data = pics.get(("version", name, version), draw)  # versions never change

@@ -95,6 +95,7 @@ def version_change(
     *,
     margin_px: int = 40,
     max_side_px: int = 700,
+    labels: tuple[str, str] = ("before", "after"),
 ) -> bytes | None:
     """Before and after of what a version changed, side by side, cropped around the changed
     cells (added red, removed blue on the right); None when nothing changed."""
@@ -114,4 +115,10 @@ def version_change(
         left = cv2.resize(left, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
         right = cv2.resize(right, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     gap = np.full((left.shape[0], 12, 3), 255, np.uint8)
-    return encode_png(np.asarray(np.concatenate([left, gap, right], axis=1), np.uint8))
+    body = np.concatenate([left, gap, right], axis=1)
+    head = np.full((28, body.shape[1], 3), 255, np.uint8)
+    for text, x in ((labels[0], 4), (labels[1], left.shape[1] + 16)):
+        cv2.putText(
+            head, text, (x, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (30, 30, 30), 1, cv2.LINE_AA
+        )
+    return encode_png(np.asarray(np.concatenate([head, body], axis=0), np.uint8))
