@@ -12,13 +12,14 @@ from pathlib import Path
 import pytest
 
 UNIT = Path(__file__).resolve().parents[1] / "deploy" / "systemd" / "mapserver.service"
+WEB_UNIT = UNIT.with_name("mapserver-web.service")
 ANALYZE = shutil.which("systemd-analyze")
 needs_analyze = pytest.mark.skipif(ANALYZE is None, reason="systemd-analyze is not installed")
 
 
-def settings() -> dict[str, list[str]]:
+def settings(unit: Path = UNIT) -> dict[str, list[str]]:
     out: dict[str, list[str]] = {}
-    for line in UNIT.read_text().splitlines():
+    for line in unit.read_text().splitlines():
         if "=" in line and not line.startswith(("#", "[")):
             key, value = line.split("=", 1)
             out.setdefault(key, []).append(value)
@@ -38,34 +39,44 @@ def test_the_unit_says_what_the_daemon_relies_on() -> None:
     assert s["MemoryMax"] == ["80%"] and s["OOMPolicy"] == ["continue"]
     assert 100 <= int(s["TasksMax"][0]) <= 4096
     command = s["ExecStart"][0].split()
-    assert command[1:] == ["run", "--config", "/etc/mapserver/mapserver.yaml"]
+    assert command[1:] == ["run", "--no-web", "--config", "/etc/mapserver/mapserver.yaml"]
+    assert s["PrivateNetwork"] == ["yes"]  # the web runs in mapserver-web.service
+
+
+def test_the_web_unit_may_only_reach_the_loopback_and_write_only_the_store() -> None:
+    s = settings(WEB_UNIT)
+    assert s["ExecStart"][0].split()[1:] == ["web", "--config", "/etc/mapserver/mapserver.yaml"]
+    assert s["ReadWritePaths"] == ["/var/lib/mapserver/maps"]
+    assert s["IPAddressDeny"] == ["any"] and s["IPAddressAllow"] == ["localhost"]
+    assert "PrivateNetwork" not in s and s["User"] == ["mapserver"]
 
 
 @needs_analyze
-def test_systemd_analyze_verify_passes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("source", [UNIT, WEB_UNIT], ids=lambda p: p.name)
+def test_systemd_analyze_verify_passes(tmp_path: Path, source: Path) -> None:
     # verify checks that ExecStart exists: point it at this checkout's command.
     here = Path(sys.executable).parent / "mapserver"
-    unit = tmp_path / "mapserver.service"
-    unit.write_text(UNIT.read_text().replace("/opt/mapserver/.venv/bin/mapserver", str(here)))
+    unit = tmp_path / source.name
+    unit.write_text(source.read_text().replace("/opt/mapserver/.venv/bin/mapserver", str(here)))
     done = subprocess.run(
         [ANALYZE, "verify", str(unit)], capture_output=True, text=True, timeout=60
     )
-    complaints = [
-        line for line in (done.stdout + done.stderr).splitlines() if "mapserver.service" in line
-    ]
+    complaints = [line for line in (done.stdout + done.stderr).splitlines() if source.name in line]
     assert done.returncode == 0 and complaints == [], done.stdout + done.stderr
 
 
 @needs_analyze
-def test_systemd_analyze_security_rates_it_2_5_or_lower() -> None:
+@pytest.mark.parametrize("unit", [UNIT, WEB_UNIT], ids=lambda p: p.name)
+def test_systemd_analyze_security_rates_it_2_5_or_lower(unit: Path) -> None:
     done = subprocess.run(
-        [ANALYZE, "security", "--offline=true", str(UNIT)],
+        [ANALYZE, "security", "--offline=true", str(unit)],
         capture_output=True,
         text=True,
         timeout=60,
     )
     if "--offline" in done.stderr and done.returncode != 0:
         pytest.skip("this systemd-analyze has no --offline")
-    match = re.search(r"Overall exposure level for mapserver\.service: ([0-9.]+)", done.stdout)
+    name = re.escape(unit.name)
+    match = re.search(rf"Overall exposure level for {name}: ([0-9.]+)", done.stdout)
     assert match, done.stdout + done.stderr
     assert float(match.group(1)) <= 2.5, done.stdout
