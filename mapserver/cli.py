@@ -391,6 +391,7 @@ def _prepare_demo_dir(root: Path) -> None:
                 file=root,
                 stage="demo",
             )
+        _stop_demo_web(root)
         for name in _DEMO_DIRS:  # what the previous demo made, nothing else
             shutil.rmtree(root / name, ignore_errors=True)
     root.mkdir(parents=True, exist_ok=True)
@@ -402,6 +403,71 @@ def _prepare_demo_dir(root: Path) -> None:
     # The demo publishes at once what three sessions confirm; a deployment's default is review.
     config["update"] = {"mode": "auto"}
     (root / "mapserver.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+
+
+_DEMO_WEB_PID = "web.pid"
+
+
+def _stop_demo_web(root: Path) -> None:
+    """Stop the web server an earlier demo left running in this folder (its pid file)."""
+    pid_file = root / _DEMO_WEB_PID
+    try:
+        pid = int(pid_file.read_text().split()[0])
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except (OSError, ValueError, IndexError):
+        pid_file.unlink(missing_ok=True)
+        return
+    if b"mapserver" in cmdline and str(root).encode() in cmdline:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGTERM)
+    pid_file.unlink(missing_ok=True)
+
+
+def _free_port(preferred: int) -> int:
+    for port in (preferred, 0):
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return int(probe.getsockname()[1])
+    raise MapserverError("no free port on 127.0.0.1 for the demo's web pages", stage="demo")
+
+
+def _start_demo_web(root: Path) -> tuple[str, int] | None:
+    """Start ``mapserver web`` on the demo folder, detached (it outlives the demo, so that the
+    operator can look); returns its URL and pid, or None when it did not come up."""
+    port = _free_port(8350)
+    log_path = root / "web.log"
+    with log_path.open("wb") as log_file:
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "mapserver.cli",
+                "web",
+                "--config",
+                str(root / "mapserver.yaml"),
+                "--listen",
+                f"127.0.0.1:{port}",
+            ],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    (root / _DEMO_WEB_PID).write_text(f"{process.pid}\n")
+
+    def listening() -> bool:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return True
+        except OSError:
+            return False
+
+    if not _wait_for(listening, time.monotonic() + 30, process):
+        return None
+    return f"http://127.0.0.1:{port}/", process.pid
 
 
 def _upload_like_rsync(bundle: Path, inbox: Path) -> None:
@@ -584,6 +650,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     )
     for line in _describe_maps(root):
         out.write(line + "\n")
+    web = _start_demo_web(root)
+    if web is None:
+        out.write(f"the web pages did not start; see {root / 'web.log'}\n")
+        return 1
+    url, pid = web
+    out.write(
+        f"\nopen {url} : the demo's results, its failures and the depot map with its changes "
+        f"and versions.\nThe page server keeps running (pid {pid}); stop it with: kill {pid}\n"
+    )
     return 0 if ok and code == 0 else 1
 
 
