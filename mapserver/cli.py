@@ -426,6 +426,8 @@ def _stop_demo_web(root: Path) -> None:
 def _free_port(preferred: int) -> int:
     for port in (preferred, 0):
         with socket.socket() as probe:
+            # As uvicorn binds: a port in TIME_WAIT after an earlier demo is free for it.
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 probe.bind(("127.0.0.1", port))
             except OSError:
