@@ -258,7 +258,12 @@ class FleetStore:
         *,
         state: str | None = None,
         ids: Iterable[int] | None = None,
+        before_id: int | None = None,
+        limit: int | None = None,
+        newest_first: bool = False,
     ) -> list[ChangeInfo]:
+        """Tracked changes, oldest first (``newest_first``: the reverse), filtered by map,
+        state, ids, and ``id < before_id``; at most ``limit`` (a page, by key)."""
         if state is not None and state not in STATES:
             raise StoreError(f"unknown state {state!r}: use one of {', '.join(STATES)}")
         sql = (
@@ -279,7 +284,14 @@ class FleetStore:
                 return []
             sql += f" AND c.id IN ({','.join('?' * len(wanted))})"
             args += wanted
-        rows = self._conn.execute(sql + " ORDER BY c.id", args).fetchall()
+        if before_id is not None:
+            sql += " AND c.id < ?"
+            args.append(before_id)
+        sql += " ORDER BY c.id" + (" DESC" if newest_first else "")
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(limit)
+        rows = self._conn.execute(sql, args).fetchall()
         sightings: dict[int, list[tuple[str, str, str]]] = {}
         ids = [r[0] for r in rows]
         for chunk in range(0, len(ids), 500):

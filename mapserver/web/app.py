@@ -471,10 +471,11 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         return store_call(lambda s: map_out(s, name, with_versions=True))  # type: ignore[no-any-return]
 
     def change_page(
-        store: Any, name: str, state: str | None, after: int | None, limit: int
+        store: Any, name: str, state: str | None, before: int | None, limit: int
     ) -> tuple[list[ChangeInfo], int | None]:
-        rows = [c for c in store.changes(name, state=state) if after is None or c.id < after]
-        rows.sort(key=lambda c: -c.id)
+        rows = store.changes(
+            name, state=state, before_id=before, limit=limit + 1, newest_first=True
+        )
         page = rows[:limit]
         return page, (page[-1].id if len(rows) > limit else None)
 
@@ -618,7 +619,12 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def map_picture(name: str) -> Response:
         def make(store: Any) -> bytes | None:
             info = store.map_info(name)
-            changes = [c for c in store.changes(name) if c.state != "expired"]
+            changes = [
+                c
+                for state in STATES
+                if state != "expired"
+                for c in store.changes(name, state=state)
+            ]
             key = (
                 name,
                 info.current_version,
