@@ -125,8 +125,10 @@ class Report:
         return out
 
 
-def report(config: Config, *, now: float | None = None) -> Report:
-    """Gather the report for ``config``'s folders (reads only)."""
+def report(config: Config, *, now: float | None = None, recent: bool = True) -> Report:
+    """Gather the report for ``config``'s folders (reads only). ``recent=False`` leaves out the
+    last 24 hours' results and failures (a stat per bundle: the web pages count them from their
+    own index)."""
     now = time.time() if now is None else now
     pid = daemon_pid(config)
     daemon = read_status(config.inbox) if pid is not None else None
@@ -140,11 +142,12 @@ def report(config: Config, *, now: float | None = None) -> Report:
     else:
         out.uploading = len(_visible(config.inbox))
         out.queued = len(_visible(config.inbox / TAKEN))
-    since = now - DAY_S
-    out.results_24h = sum(1 for _ in _recent(config.outbox, RESULT, since))
-    failed = sorted(_recent(config.failed, ERROR, since), key=lambda item: -item[1])
-    out.failed_24h = len(failed)
-    out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
+    if recent:
+        since = now - DAY_S
+        out.results_24h = sum(1 for _ in _recent(config.outbox, RESULT, since))
+        failed = sorted(_recent(config.failed, ERROR, since), key=lambda item: -item[1])
+        out.failed_24h = len(failed)
+        out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
     folders = {name: getattr(config, name) for name in ("inbox", "outbox", "archive", "failed")}
     if config.maps is not None:
         folders["maps"] = config.maps

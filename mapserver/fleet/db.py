@@ -119,6 +119,7 @@ MIGRATIONS: tuple[str, ...] = (
         detail TEXT NOT NULL DEFAULT ''
     );
     CREATE INDEX change_events_by_change ON change_events(change_id);
+    CREATE INDEX bundles_by_map ON bundles(map_id);
     """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)

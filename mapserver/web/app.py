@@ -253,7 +253,9 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
                 for m in store.maps()
             ]
 
-    registry.register(MapserverCollector(config, index, lambda: report(config), fleet_figures))
+    registry.register(
+        MapserverCollector(config, index, lambda: report(config, recent=False), fleet_figures)
+    )
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -347,7 +349,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
                 raise HTTPException(code, error.reason) from None
 
     def daemon_report() -> Report:
-        return report(config)
+        return report(config, recent=False)  # the index counts the last 24 h
 
     # -- health, metrics, files for robots ---------------------------------------------------
 

@@ -9,6 +9,7 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -33,11 +34,11 @@ def _histogram(
 ) -> HistogramMetricFamily:
     family = HistogramMetricFamily(name, doc, labels=labels)
     for label_values, samples in sorted(values.items()):
-        counts = []
-        for bound in buckets:
-            counts.append((repr(bound), float(sum(1 for v in samples if v <= bound))))
-        counts.append(("+Inf", float(len(samples))))
-        family.add_metric(list(label_values), counts, sum_value=float(sum(samples)))
+        ordered = np.sort(np.asarray(samples, float))
+        below = np.searchsorted(ordered, np.asarray(buckets), side="right")
+        counts = [(repr(bound), float(n)) for bound, n in zip(buckets, below, strict=True)]
+        counts.append(("+Inf", float(len(ordered))))
+        family.add_metric(list(label_values), counts, sum_value=float(ordered.sum()))
     return family
 
 
