@@ -133,7 +133,7 @@ def _recovery(root: Path) -> str:
     )
 
 
-def connect(root: Path, *, create: bool) -> sqlite3.Connection:
+def connect(root: Path, *, create: bool, check: bool = True) -> sqlite3.Connection:
     """Open (and with ``create``, make and migrate) the database of the store at ``root``.
 
     Raises :class:`StoreError` with how to recover when the database is missing while the store
@@ -158,16 +158,18 @@ def connect(root: Path, *, create: bool) -> sqlite3.Connection:
         conn.execute("PRAGMA foreign_keys = ON")
         conn.execute("PRAGMA synchronous = FULL")
         mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-        check = conn.execute("PRAGMA quick_check").fetchone()[0]
+        # The full check reads the whole file: once at the daemon's start and per command, not
+        # per web request (a reader of a damaged file still fails, below or at its query).
+        verdict = conn.execute("PRAGMA quick_check").fetchone()[0] if check else "ok"
         version = conn.execute("PRAGMA user_version").fetchone()[0]
     except sqlite3.DatabaseError as error:
         raise StoreError(
             f"the map store's database is unreadable ({error}): {_recovery(root)}", file=path
         ) from None
-    if check != "ok":
+    if verdict != "ok":
         conn.close()
         raise StoreError(
-            f"the map store's database is damaged ({check}): {_recovery(root)}", file=path
+            f"the map store's database is damaged ({verdict}): {_recovery(root)}", file=path
         )
     if mode.lower() != "wal":
         conn.close()

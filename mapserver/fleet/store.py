@@ -93,6 +93,7 @@ class FleetStore:
         settings: UpdateConfig | None = None,
         *,
         create: bool = True,
+        check: bool = True,
         checkpoint: Callable[[str], None] | None = None,
     ):
         self.root = Path(root)
@@ -100,7 +101,7 @@ class FleetStore:
         # "bundle-applied" after its commit, "version-written" before a version's commit).
         self._checkpoint = checkpoint or (lambda name: None)
         self.settings = settings or UpdateConfig()
-        self._conn = connect(self.root, create=create)
+        self._conn = connect(self.root, create=create, check=check)
         self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
         # changes.yaml is rewritten after every update: each change's YAML text is kept and
         # made again only when the change was touched (ids in _dirty).

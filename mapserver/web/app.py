@@ -188,7 +188,7 @@ class _Stores:
             return
         store = getattr(self._local, "store", None)
         if store is None:
-            store = FleetStore(self.config.maps, self.config.update, create=False)
+            store = FleetStore(self.config.maps, self.config.update, create=False, check=False)
             self._local.store = store
         yield store
 
