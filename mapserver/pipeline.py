@@ -48,6 +48,7 @@ from mapserver.geometry import Pose2D, Transform2D
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
+from mapserver.trust import trust_notice
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -538,6 +539,21 @@ def process_bundle(
         "cluster", lambda: _cluster_masks(masks, removal_evidence, grid, config, local)
     )
 
+    alignment_doc = {
+        "theta": round(transform.theta, 6),
+        "tx": round(transform.tx, 4),
+        "ty": round(transform.ty, 4),
+        "method": alignment.method,
+        "refined": alignment.refined,
+        "score": round(alignment.score, 3),
+        "prior_score": round(alignment.prior_score, 3),
+        # The largest slam-drift correction applied on top of the rigid transform, metres.
+        "drift_m": round(drift_m, 3),
+        "trusted": alignment.trusted,
+        "min_score": settings.align.min_score,
+    }
+    notice = trust_notice(alignment_doc)
+
     def _render() -> dict[str, bytes]:
         r = settings.render
         window = render.window_for(
@@ -553,6 +569,7 @@ def process_bundle(
             differences,
             route_xy=route_xy,
             title=title,
+            banner=notice,
         )
         dimg = render.diff_image(grid, window, view.state, masks.added, masks.removed, differences)
         return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
@@ -633,17 +650,7 @@ def process_bundle(
             "width": global_map.width,
             "height": global_map.height,
         },
-        "alignment": {
-            "theta": round(transform.theta, 6),
-            "tx": round(transform.tx, 4),
-            "ty": round(transform.ty, 4),
-            "method": alignment.method,
-            "refined": alignment.refined,
-            "score": round(alignment.score, 3),
-            "prior_score": round(alignment.prior_score, 3),
-            # The largest slam-drift correction applied on top of the rigid transform, metres.
-            "drift_m": round(drift_m, 3),
-        },
+        "alignment": alignment_doc,
         "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
         "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],
         "warnings": warnings,
