@@ -60,6 +60,8 @@ class Case:
     bundle_id: str
     bundle_dir: Path
     truth_path: Path
+    kind: str = ""
+    """The scenario's case (``scenario.yaml``'s ``case``, else the scenario folder's name)."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,8 @@ class Row:
     seconds: float | None = None
     reason: str | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    trust: str = "-"
+    """``trusted``, ``partly`` (a share of the local map compared), ``untrusted`` or ``-``."""
 
 
 class UsageError(Exception):
@@ -101,10 +105,31 @@ def find_cases(set_dir: Path) -> list[Case]:
         truth = bundle_dir.parent.parent / "truth" / f"{bundle_dir.name}.yaml"
         if not truth.is_file():
             raise UsageError(f"{truth}: no truth file for bundle {bundle_dir}")
-        cases.append(Case(bundle_dir.name, bundle_dir, truth))
+        cases.append(Case(bundle_dir.name, bundle_dir, truth, _scenario_kind(bundle_dir)))
     if not cases:
         raise UsageError(f"{set_dir}: no bundles (expected <scenario>/bundles/<bundle_id>/)")
     return cases
+
+
+def _scenario_kind(bundle_dir: Path) -> str:
+    scenario_dir = bundle_dir.parent.parent
+    try:
+        doc = yaml.safe_load((scenario_dir / "scenario.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        doc = None
+    case = doc.get("case") if isinstance(doc, dict) else None
+    return str(case) if case else scenario_dir.name
+
+
+def _trust(doc: Any) -> str:
+    """How far a result's alignment was trusted (FORMATS.md section 8), ``-`` when it says not."""
+    alignment = doc.get("alignment") if isinstance(doc, dict) else None
+    if not isinstance(alignment, dict) or "trusted" not in alignment:
+        return "-"
+    if not alignment["trusted"]:
+        return "untrusted"
+    share = alignment.get("trusted_share")
+    return "partly" if isinstance(share, (int, float)) and share < 0.999 else "trusted"
 
 
 def run_in_process(cases: Sequence[Case], outbox: Path, config_path: Path | None) -> dict[str, Run]:
@@ -215,7 +240,8 @@ def score_outbox(
             rows.append(Row(case, score_bundle(truth, None), "missing", seconds, "no result.yaml"))
             continue
         try:
-            result = parse_result(_load_yaml(result_path))
+            raw = _load_yaml(result_path)
+            result = parse_result(raw)
         except (OSError, yaml.YAMLError, ValueError) as error:
             reason = f"{result_path}: {' '.join(str(error).split())}"
             rows.append(Row(case, score_bundle(truth, None), "invalid", seconds, reason))
@@ -223,7 +249,7 @@ def score_outbox(
         centre = local_map_centre(case.bundle_dir) if result.ok else None
         score = score_bundle(truth, result, centre_slam_xy=centre)
         timings = dict(result.timings_ms)
-        rows.append(Row(case, score, result.status, seconds, None, timings))
+        rows.append(Row(case, score, result.status, seconds, None, timings, _trust(raw)))
     return rows
 
 
@@ -254,6 +280,8 @@ def report(rows: Sequence[Row], *, set_dir: Path, outbox: Path, mode: str) -> di
         bundles.append(
             {
                 "bundle": row.case.bundle_id,
+                "kind": row.case.kind,
+                "trust": row.trust,
                 "status": row.status,
                 "reason": row.reason,
                 "differences": s.n_differences,
@@ -312,7 +340,34 @@ def report(rows: Sequence[Row], *, set_dir: Path, outbox: Path, mode: str) -> di
             "seconds_total": float(sum(seconds)) if seconds else None,
             "stage_median_ms": stage_medians_ms(rows),
         },
+        "kinds": kind_totals(rows),
     }
+
+
+def kind_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
+    """The totals of each kind of scenario (its case), in first-seen order."""
+    by_kind: dict[str, list[Row]] = {}
+    for row in rows:
+        by_kind.setdefault(row.case.kind, []).append(row)
+    out = {}
+    for kind, kind_rows in by_kind.items():
+        t = summarize(r.score for r in kind_rows)
+        out[kind] = {
+            "bundles": t.n_bundles,
+            "failures": t.n_failures,
+            "untrusted": sum(r.trust == "untrusted" for r in kind_rows),
+            "partly": sum(r.trust == "partly" for r in kind_rows),
+            "correct": t.n_correct,
+            "false_positive": t.n_false_positive,
+            "observed": t.n_observed,
+            "matched": t.n_matched,
+            "precision": _ratio(t.precision),
+            "recall": _ratio(t.recall),
+            "f1": _ratio(t.f1),
+            "kind_accuracy": _ratio(t.kind_accuracy),
+            "alignment_error_p90_m": t.alignment_error_p90_m,
+        }
+    return out
 
 
 def _fmt(value: float | None, spec: str) -> str:
@@ -324,7 +379,7 @@ def format_report(doc: dict[str, Any]) -> str:
     header = (
         f"{'bundle':<24} {'diffs':>5} {'TP':>4} {'FP':>4} {'neut':>4} {'obs':>4} {'match':>5} "
         f"{'frag':>4} {'P':>5} {'R':>5} {'F1':>5} {'kind':>5} {'align_m':>7} {'deg':>5} "
-        f"{'sec':>6}  status"
+        f"{'sec':>6} {'trust':>9}  status"
     )
     lines = [header, "-" * len(header)]
     for b in doc["bundles"]:
@@ -334,7 +389,8 @@ def format_report(doc: dict[str, Any]) -> str:
             f"{b['neutral']:>4} {b['observed']:>4} {b['matched']:>5} {b['fragments']:>4} "
             f"{b['precision']:>5.2f} {b['recall']:>5.2f} {b['f1']:>5.2f} "
             f"{_fmt(b['kind_accuracy'], '5.2f'):>5} {_fmt(b['alignment_error_m'], '7.3f'):>7} "
-            f"{_fmt(b['alignment_error_deg'], '5.2f'):>5} {_fmt(b['seconds'], '6.2f'):>6}  {status}"
+            f"{_fmt(b['alignment_error_deg'], '5.2f'):>5} {_fmt(b['seconds'], '6.2f'):>6} "
+            f"{b['trust']:>9}  {status}"
         )
     t = doc["total"]
     stages = " ".join(f"{k}={v:.1f}" for k, v in t["stage_median_ms"].items()) or "-"
@@ -353,6 +409,18 @@ def format_report(doc: dict[str, Any]) -> str:
         f"{_fmt(t['seconds_total'], '.1f')}; stage medians (ms): {stages}",
         f"results in {doc['outbox']} ({doc['mode']})",
     ]
+    kinds = doc.get("kinds", {})
+    if len(kinds) > 1:
+        lines.append("per kind:")
+        for kind, k in kinds.items():
+            lines.append(
+                f"  {kind:<14} {k['bundles']:>3} bundles  P {_fmt(k['precision'], '.3f')}  "
+                f"R {_fmt(k['recall'], '.3f')}  F1 {_fmt(k['f1'], '.3f')}  "
+                f"kind {_fmt(k['kind_accuracy'], '.3f')}  "
+                f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
+                f"{k['matched']}/{k['observed']} found, {k['false_positive']} FP, "
+                f"{k['untrusted']} untrusted, {k['partly']} partly, {k['failures']} failed"
+            )
     return "\n".join(lines)
 
 

@@ -32,6 +32,7 @@ from mapserver.errors import MapFileError, MapserverError
 from mapserver.fleet.cli import open_store
 from mapserver.fleet.cli import register as register_fleet_commands
 from mapserver.lock import AlreadyRunning, daemon_pid, store_lock
+from mapserver.trust import trust_notice
 
 log = logging.getLogger("mapserver")
 
@@ -96,6 +97,9 @@ def _cmd_process(args: argparse.Namespace) -> int:
             lines = [
                 f"{outcome.bundle_id}: {len(differences)} differences -> {final / RESULT}{note}"
             ]
+            notice = trust_notice(outcome.result.get("alignment") or {})
+            if notice:
+                lines.append(f"{outcome.bundle_id}: {notice}")
             lines += [_difference_line(d) for d in differences]
             sys.stdout.write("\n".join(lines) + "\n")
     return 1 if failures else 0
@@ -511,6 +515,9 @@ def _describe_result(bundle_id: str, result_dir: Path) -> list[str]:
         f"  result.yaml  {result_dir / 'result.yaml'}",
         f"  overlay.png  {result_dir / 'overlay.png'}",
     ]
+    notice = trust_notice(alignment)
+    if notice:
+        lines.insert(1, f"  {notice}")
     lines += [_difference_line(d) for d in differences]
     return lines
 

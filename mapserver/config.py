@@ -47,6 +47,11 @@ class AlignConfig(_Frozen):
     """Largest drift shift of the coarsest pass; each finer pass allows half the one before."""
     deform_passes: int = Field(3, ge=1, le=5)
     """Coarse-to-fine drift passes; each doubles the neighbourhood of the one after it."""
+    pieces: bool = True
+    """When no rigid transform is trusted for the whole local map, align it in pieces along the
+    route (needs a trajectory in bundle.yaml) and compare the trusted ones."""
+    piece_m: float = Field(20.0, gt=0)
+    """Route length of one piece."""
 
 
 class RoiConfig(_Frozen):

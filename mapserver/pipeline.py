@@ -16,11 +16,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, TypeVar
 
+import cv2
 import numpy as np
 
 from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
-from mapserver import deform, render, roi
+from mapserver import deform, piecewise, render, roi
 from mapserver import diff as diff_stage
 from mapserver.bundle import (
     MANIFEST,
@@ -48,6 +49,7 @@ from mapserver.geometry import Pose2D, Transform2D
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
+from mapserver.trust import trust_notice
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -204,6 +206,72 @@ def _robot_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> Pose2D:
     slam = files.manifest.pose.slam.to_pose()
     x, y = nav2_from_slam.apply(np.array([slam.x, slam.y]))
     return Pose2D(float(x), float(y), slam.yaw + nav2_from_slam.theta)
+
+
+def _align_in_pieces(
+    files: BundleFiles,
+    local: OccupancyMap,
+    view: align_stage.GlobalView,
+    alignment: align_stage.Alignment,
+    config: Config,
+) -> piecewise.Pieces | None:
+    """The local map aligned in pieces along the route, when no rigid transform is trusted for
+    the whole of it and the route is long enough for two pieces (else None)."""
+    a = config.pipeline.align
+    poses = files.manifest.trajectory_poses()
+    if alignment.trusted or not a.pieces or not a.refine or len(poses) < 2:
+        return None
+    route = np.array([[p.x, p.y] for p in poses])
+    if float(np.hypot(*np.diff(route, axis=0).T).sum()) < 1.5 * a.piece_m:
+        return None
+    # The prior is right where the robot was when it reported its pose (the route's end, where
+    # the pieces start); the whole map's best rigid fit is a compromise over all of it.
+    return piecewise.align_pieces(
+        local,
+        view,
+        route,
+        files.manifest.nav2_from_slam_prior(),
+        piece_m=a.piece_m,
+        min_score=a.min_score,
+    )
+
+
+def _estimate_drift(
+    local: OccupancyMap,
+    transform: Transform2D,
+    view: align_stage.GlobalView,
+    config: Config,
+    *,
+    reach_m: float,
+) -> deform.DriftStack:
+    """The slam drift left over by ``transform``: coarse to fine shift fields (README, warp)."""
+    a = config.pipeline.align
+    grid = view.grid
+    # One wall point per two work cells: the shifts are averages over metres of wall.
+    spacing = 2 * grid.resolution
+    walls = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), spacing)
+    nearest = view.nearest_wall_near(transform.apply(walls), reach_m=reach_m)
+    # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
+    fields: list[deform.DriftField] = []
+    for tile_m, max_shift_m in _drift_passes(
+        a.deform_tile_m, a.deform_max_shift_m, a.deform_passes
+    ):
+        # A coarser pass averages over more wall: points as much sparser as its tiles are
+        # larger do as well (the same number per tile), at a fraction of the cost.
+        k = round(tile_m / a.deform_tile_m)
+        pts = walls if k <= 1 else align_stage.thin_points(walls, spacing * k)
+        fields.append(
+            deform.estimate_drift(
+                pts,
+                transform,
+                grid,
+                nearest,
+                tile_m=tile_m,
+                max_shift_m=max_shift_m,
+                initial=deform.DriftStack(tuple(fields)) if fields else None,
+            )
+        )
+    return deform.DriftStack(tuple(fields))
 
 
 def _make_roi(
@@ -471,38 +539,49 @@ def process_bundle(
     warnings += alignment.warnings
     transform = alignment.nav2_from_slam
     grid = view.grid
+    pieces = None
+    if not alignment.trusted and settings.align.pieces:
+        pieces = stages.run(
+            "pieces", lambda: _align_in_pieces(files, local, view, alignment, config)
+        )
+    in_pieces = pieces is not None and bool(pieces.trusted)
+    compared = alignment.trusted or in_pieces
+    left_out = None
+    if pieces is not None and in_pieces:
+        transform = piecewise.fit_rigid(local, pieces) or transform
+        warnings[:] = [w for w in warnings if w not in alignment.warnings]
+        warnings.append(
+            f"the local map was aligned in {len(pieces.pieces)} pieces along the route, "
+            f"{len(pieces.trusted)} trusted: {pieces.trusted_share:.0%} of the observed area "
+            f"({pieces.trusted_area_m2:.0f} m2) compared, the rest left out"
+        )
+
+    def _warp_pieces() -> tuple[align_stage.GlobalView, np.ndarray, np.ndarray]:
+        assert pieces is not None
+
+        def warp_piece(part: OccupancyMap, t: Transform2D) -> np.ndarray:
+            drift = None
+            if settings.align.deform:
+                drift = _estimate_drift(part, t, view, config, reach_m=drift_reach_m)
+            return deform.warp_local(part, grid, t, drift)
+
+        state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
+        x, y, w, h = cv2.boundingRect(((state != UNKNOWN) | out).view(np.uint8))
+        m = math.ceil(margin_m / grid.resolution)
+        box = (
+            max(y - m, 0),
+            min(y + h + m, grid.height),
+            max(x - m, 0),
+            min(x + w + m, grid.width),
+        )
+        r0, r1, c0, c1 = box
+        return view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1]
 
     def _warp() -> tuple[align_stage.GlobalView, np.ndarray, float]:
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
-            # One wall point per two work cells: the shifts are averages over metres of wall.
-            spacing = 2 * grid.resolution
-            walls = align_stage.thin_points(
-                align_stage.known_points(local, state=OCCUPIED), spacing
-            )
-            nearest = view.nearest_wall_near(transform.apply(walls), reach_m=drift_reach_m)
-            # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
-            fields: list[deform.DriftField] = []
-            for tile_m, max_shift_m in _drift_passes(
-                a.deform_tile_m, a.deform_max_shift_m, a.deform_passes
-            ):
-                # A coarser pass averages over more wall: points as much sparser as its tiles
-                # are larger do as well (the same number per tile), at a fraction of the cost.
-                k = round(tile_m / a.deform_tile_m)
-                pts = walls if k <= 1 else align_stage.thin_points(walls, spacing * k)
-                fields.append(
-                    deform.estimate_drift(
-                        pts,
-                        transform,
-                        grid,
-                        nearest,
-                        tile_m=tile_m,
-                        max_shift_m=max_shift_m,
-                        initial=deform.DriftStack(tuple(fields)) if fields else None,
-                    )
-                )
-            drift = deform.DriftStack(tuple(fields))
+            drift = _estimate_drift(local, transform, view, config, reach_m=drift_reach_m)
         # From here on, only where the local map lands matters (with room for the tolerances and
         # the images' margin): the search view around it is several times larger.
         drift_m = drift.max_shift_m() if drift is not None else 0.0
@@ -516,7 +595,11 @@ def process_bundle(
         work = view.cropped(box) if box is not None else view
         return work, deform.warp_local(local, work.grid, transform, drift), drift_m
 
-    view, local_state, drift_m = stages.run("warp", _warp)
+    if in_pieces:
+        view, local_state, left_out = stages.run("warp", _warp_pieces)
+        drift_m = 0.0
+    else:
+        view, local_state, drift_m = stages.run("warp", _warp)
     route_xy = _route_nav2(files, transform)  # the trajectory ROI and the overlay draw it
     grid = view.grid
     if drift_m > 0.1:
@@ -526,7 +609,7 @@ def process_bundle(
     )
 
     def _diff() -> tuple[diff_stage.DiffMasks, np.ndarray]:
-        if not alignment.trusted:
+        if not compared:
             empty = np.zeros(grid.shape, bool)
             return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
         return _diff_masks(
@@ -537,6 +620,34 @@ def process_bundle(
     differences = stages.run(
         "cluster", lambda: _cluster_masks(masks, removal_evidence, grid, config, local)
     )
+
+    alignment_doc = {
+        "theta": round(transform.theta, 6),
+        "tx": round(transform.tx, 4),
+        "ty": round(transform.ty, 4),
+        "method": alignment.method,
+        "refined": alignment.refined,
+        "score": round(alignment.score, 3),
+        "prior_score": round(alignment.prior_score, 3),
+        # The largest slam-drift correction applied on top of the rigid transform, metres.
+        "drift_m": round(drift_m, 3),
+        "trusted": compared,
+        "min_score": settings.align.min_score,
+    }
+    if pieces is not None:
+        alignment_doc["method"] = f"{alignment.method}+pieces"
+        alignment_doc["trusted_area_m2"] = round(pieces.trusted_area_m2, 1)
+        alignment_doc["trusted_share"] = round(pieces.trusted_share, 3)
+        alignment_doc["pieces"] = len(pieces.pieces)
+        alignment_doc["trusted_pieces"] = len(pieces.trusted)
+        if in_pieces:
+            # The score of what was compared: the trusted pieces', by area; the whole map's
+            # rigid fit scored whole_score.
+            alignment_doc["whole_score"] = alignment_doc["score"]
+            weights = [p.area_m2 for p in pieces.trusted]
+            scores = [p.score for p in pieces.trusted]
+            alignment_doc["score"] = round(float(np.average(scores, weights=weights)), 3)
+    notice = trust_notice(alignment_doc)
 
     def _render() -> dict[str, bytes]:
         r = settings.render
@@ -553,6 +664,8 @@ def process_bundle(
             differences,
             route_xy=route_xy,
             title=title,
+            banner=notice,
+            left_out=left_out,
         )
         dimg = render.diff_image(grid, window, view.state, masks.added, masks.removed, differences)
         return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
@@ -567,7 +680,7 @@ def process_bundle(
             link = _map_link(maps_root, files, global_map, bundle_dir, warnings)
             if link is None:
                 return None
-            if not alignment.trusted:
+            if not compared:
                 warnings.append(
                     f"map {link.name}: the alignment is not trusted; this bundle adds nothing "
                     "to the fleet map"
@@ -633,17 +746,7 @@ def process_bundle(
             "width": global_map.width,
             "height": global_map.height,
         },
-        "alignment": {
-            "theta": round(transform.theta, 6),
-            "tx": round(transform.tx, 4),
-            "ty": round(transform.ty, 4),
-            "method": alignment.method,
-            "refined": alignment.refined,
-            "score": round(alignment.score, 3),
-            "prior_score": round(alignment.prior_score, 3),
-            # The largest slam-drift correction applied on top of the rigid transform, metres.
-            "drift_m": round(drift_m, 3),
-        },
+        "alignment": alignment_doc,
         "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
         "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],
         "warnings": warnings,

@@ -23,6 +23,8 @@ REMOVED: BGR = (230, 60, 0)
 LOCAL: BGR = (40, 150, 40)
 ROI_COLOUR: BGR = (0, 190, 255)
 ROUTE: BGR = (200, 0, 200)
+BANNER: BGR = (0, 0, 170)
+LEFT_OUT: BGR = (150, 150, 150)
 
 
 @dataclass(frozen=True)
@@ -164,6 +166,39 @@ def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Dif
         )
 
 
+def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
+    """``image`` (H, W, 3) BGR with a band across the top saying ``text`` in white on dark red:
+    a new (H + band, W, 3) image, lines broken at "; " where the text is wider than the image."""
+    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1
+    width = image.shape[1]
+    lines: list[str] = []
+    for part in text.split("; "):
+        candidate = f"{lines[-1]}; {part}" if lines else part
+        fits = cv2.getTextSize(candidate, font, scale, thick)[0][0] <= width - 16
+        if lines and fits:
+            lines[-1] = candidate
+        else:
+            lines.append(part)
+    widest = max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in lines)
+    if widest > width - 16:  # a narrow image: smaller letters rather than cut ones
+        scale *= max((width - 16) / widest, 0.3)
+    line_px = round(26 * scale / 0.6)
+    band = np.empty((line_px * len(lines) + 10, width, 3), np.uint8)
+    band[:] = BANNER
+    for i, line in enumerate(lines):
+        cv2.putText(
+            band,
+            line,
+            (8, 5 + line_px * (i + 1) - round(7 * scale / 0.6)),
+            font,
+            scale,
+            (255, 255, 255),
+            thick + 1 if scale >= 0.5 else thick,
+            cv2.LINE_AA,
+        )
+    return np.concatenate([band, image], axis=0)
+
+
 def overlay(
     grid: Grid,
     window: Window,
@@ -174,11 +209,23 @@ def overlay(
     *,
     route_xy: NDArray[np.float64] | None = None,
     title: str = "",
+    banner: str | None = None,
+    left_out: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.uint8]:
     """The overlay as a (H, W, 3) BGR image: global map in greys, the local map's walls green,
-    the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``)."""
+    the ROI outline, the route, and numbered boxes (ids as in ``result.yaml``).
+
+    ``banner``: a band across the top saying so (an alignment not or only partly trusted).
+    ``left_out``: (rows, cols) bool on ``grid``, the local map's cells not compared, hatched.
+    """
     local_occ = _mask_scaled(_crop(local_state, window) == OCCUPIED, window)
     image = _painted(_crop(global_state, window), window, (255, 60, 205), [(local_occ, LOCAL)])
+    if left_out is not None and left_out.any():
+        shade = _mask_scaled(_crop(left_out, window), window)
+        h, w = shade.shape
+        rows, cols = np.ogrid[:h, :w]
+        hatch = shade & ((rows + cols) % 8 < 3)
+        image[hatch] = LEFT_OUT
     if roi_polygon:
         pts = window.to_image(grid, np.array(roi_polygon))
         cv2.polylines(image, [pts], True, ROI_COLOUR, 2, cv2.LINE_AA)
@@ -194,13 +241,15 @@ def overlay(
     ]
     if route_xy is not None and len(route_xy) > 1:
         items.append(("robot route", ROUTE))
+    if left_out is not None and left_out.any():
+        items.append(("not compared (alignment not trusted there)", LEFT_OUT))
     _legend(image, items)
     if title:
         h = image.shape[0]
         cv2.putText(
             image, title, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (20, 20, 20), 1, cv2.LINE_AA
         )
-    return image
+    return with_banner(image, banner) if banner else image
 
 
 def diff_image(

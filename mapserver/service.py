@@ -59,6 +59,7 @@ from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store, utc_now
 from mapserver.status import write_status
+from mapserver.trust import trust_notice
 
 if TYPE_CHECKING:
     from mapserver.fleet.store import FleetStore
@@ -756,6 +757,9 @@ class Service:
             return
         log.info("%s: archive %.1f ms", bundle_id, (time.perf_counter() - published) * 1000.0)
         self._counts.results += 1
+        notice = trust_notice(outcome.result.get("alignment") or {})
+        if notice:
+            log.warning("%s: %s", bundle_id, notice)
         log.info(
             "%s: done: ok, %d differences, %.2f s from complete to result (processing %.2f s) "
             "-> %s",

@@ -459,3 +459,49 @@ def test_roughen_map_only_grows_walls_a_little(office: OccupancyMap) -> None:
     assert rough.origin == office.origin and rough.resolution == office.resolution
     sc = synth.make_scenario(rough, seed=2, route_length_m=12)
     assert sc.slam_map.state.size > 0
+
+
+def _cast_in_child(queue, args):  # type: ignore[no-untyped-def]
+    from mapserver.synth.session import _cast
+
+    queue.put(_cast(*args))
+
+
+@pytest.mark.parametrize("heading", [math.pi / 2, 3 * math.pi / 2, math.pi, 0.0])
+def test_cast_terminates_for_a_beam_along_a_cell_boundary(heading: float) -> None:
+    """A beam starting on a cell boundary, along it (cos(pi/2) is 6e-17, not 0), reaches its wall.
+
+    make_scenarios.py --count 30 --seed 99 hung on gen-08-coarse: such a beam's exit time rounded
+    below its own position and the distance jump then walked it backwards, for ever. Run in a
+    child process so that a regression fails after a deadline instead of hanging the suite.
+    """
+    import multiprocessing
+
+    size = 60
+    code = np.zeros((size, size), np.int8)
+    code[0, :] = code[-1, :] = code[:, 0] = code[:, -1] = 1  # walls all round
+    dist = cv2.distanceTransform((code == 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    u0 = np.array([30.0, 17.0]), np.array([30.0, 41.0])  # on cell boundaries in both axes
+    du = np.full(2, math.cos(heading))
+    dv = np.full(2, -math.sin(heading))
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_cast_in_child, args=(queue, (code, dist, *u0, du, dv, 100.0)))
+    child.start()
+    child.join(timeout=20)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail(f"_cast did not finish within 20 s for heading {heading:.4f} rad")
+    t, kind, _, _ = queue.get(timeout=5)
+    assert kind.tolist() == [1, 1]
+    # The wall cell's far side: start 30 (u) or 17/41 (v) px from the boundary of cell 0 / 59.
+    u, v = u0
+    expected = {
+        0.0: 59 - u,  # east: the wall cell [59, 60) is entered at u = 59
+        math.pi: u - 1,  # west: leaves cell 1 at u = 1
+        math.pi / 2: v - 1,  # north (v decreasing)
+        3 * math.pi / 2: 59 - v,  # south (cos is -1.8e-16: the hung beam)
+    }[heading]
+    # The range is to the middle of the chord through the hit cell: half a pixel beyond its face.
+    np.testing.assert_allclose(t, expected + 0.5, atol=1e-6)

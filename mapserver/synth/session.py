@@ -137,7 +137,11 @@ def _cast(
     step_u, step_v = (du > 0).astype(float), (dv > 0).astype(float)
     idx = np.arange(n)
     t = np.zeros(n)
-    while idx.size:
+    # A ray crosses at most |du| L + |dv| L + 2 <= sqrt(2) L + 2 cells, one step each at worst.
+    max_steps = math.ceil(1.5 * max_t) + 4
+    for step in range(max_steps + 1):
+        if not idx.size:
+            break
         col = np.floor(u0[idx] + t * du[idx]).astype(np.intp)
         row = np.floor(v0[idx] + t * dv[idx]).astype(np.intp)
         inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
@@ -145,8 +149,12 @@ def _cast(
         k[inside] = code[row[inside], col[inside]]
         tx = np.where(zero_u[idx], np.inf, (col + step_u[idx] - u0[idx]) / du_safe[idx])
         ty = np.where(zero_v[idx], np.inf, (row + step_v[idx] - v0[idx]) / dv_safe[idx])
+        # A ray running along a cell boundary (cos(pi/2) is 6e-17, not 0) can round onto the
+        # wrong side of it: that boundary then lies behind the ray, and its next one is 1/|d| on.
+        tx = np.where(tx <= t, tx + 1.0 / np.abs(du_safe[idx]), tx)
+        ty = np.where(ty <= t, ty + 1.0 / np.abs(dv_safe[idx]), ty)
         t_exit = np.minimum(tx, ty)
-        beyond = t >= max_t
+        beyond = (t >= max_t) | (step == max_steps)
         done = (k != 0) | beyond
         if done.any():
             di = idx[done]

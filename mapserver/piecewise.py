@@ -1,0 +1,269 @@
+"""Piecewise alignment: a local map that no single rigid transform explains, aligned in pieces.
+
+A long session whose slam drift bends its map beyond what the smooth warp absorbs (or whose loop
+slam_toolbox closed badly) fails the rigid alignment as a whole, yet most of it fits the
+building. Here the local map is cut into pieces along the robot's route (each cell belongs to
+the piece of the route nearest to it), and each piece is aligned on its own, starting from its
+neighbour's transform (drift grows slowly along the route) and, for the first, from the
+whole-map transform. A piece is trusted when it scores at least ``min_score`` and its transform
+agrees with its trusted neighbour's where they meet. Only trusted pieces are compared.
+
+Pure functions on arrays; ``[row, col]`` indexing throughout, row 0 at the top.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mapserver import align as align_stage
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid, resample
+from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Piece:
+    """One piece of the local map and its own alignment.
+
+    ``mask`` is (H, W) bool on the local map's grid: the known cells of this piece. ``junction``
+    is the slam-frame point where the piece's route starts (where it meets the previous piece).
+    """
+
+    index: int
+    mask: NDArray[np.bool_]
+    nav2_from_slam: Transform2D
+    score: float
+    trusted: bool
+    area_m2: float
+    junction: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """The pieces of a local map; ``trusted_area_m2`` over ``observed_area_m2`` is the share of
+    what the robot saw that is compared."""
+
+    pieces: tuple[Piece, ...]
+    observed_area_m2: float
+
+    @property
+    def trusted(self) -> tuple[Piece, ...]:
+        return tuple(p for p in self.pieces if p.trusted)
+
+    @property
+    def trusted_area_m2(self) -> float:
+        return float(sum(p.area_m2 for p in self.trusted))
+
+    @property
+    def trusted_share(self) -> float:
+        return self.trusted_area_m2 / self.observed_area_m2 if self.observed_area_m2 > 0 else 0.0
+
+
+def route_pieces(route_slam: FloatArray, *, piece_m: float) -> list[FloatArray]:
+    """Cut a route (N, 2) slam-frame metres into consecutive runs of about ``piece_m`` of path
+    each (the last one joined to its predecessor when shorter than half of that). Neighbouring
+    runs share their end point."""
+    if piece_m <= 0:
+        raise ValueError(f"piece_m must be > 0, got {piece_m}")
+    route = np.asarray(route_slam, dtype=float).reshape(-1, 2)
+    if len(route) < 2:
+        return [route]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(route, axis=0).T))])
+    n = max(1, round(s[-1] / piece_m))
+    bounds = np.searchsorted(s, np.linspace(0.0, s[-1], n + 1)[1:-1])
+    cuts = [0, *sorted(set(int(b) for b in bounds if 0 < b < len(route) - 1)), len(route) - 1]
+    return [route[a : b + 1] for a, b in itertools.pairwise(cuts)]
+
+
+def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.int32]:
+    """(H, W) int32 on the local map's grid: the index of the run nearest to each known cell
+    (the robot saw it from there, most likely), -1 for unknown cells."""
+    grid = Grid.of_map(local)
+    seeds = np.zeros(local.state.shape, np.uint8)
+    owner = np.zeros(local.state.shape, np.int32)
+    for i, run in enumerate(runs):
+        # Dense points along the run, so that its whole path is a seed, not only its poses.
+        pts = _densify(run, local.resolution)
+        px = np.rint(grid.to_pixel(pts)).astype(np.int64)
+        ok = (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
+        seeds[px[ok, 1], px[ok, 0]] = 1
+        owner[px[ok, 1], px[ok, 0]] = i
+    labels = np.full(local.state.shape, -1, np.int32)
+    if not seeds.any():
+        return labels
+    _, nearest = cv2.distanceTransformWithLabels(
+        (seeds == 0).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Each seed pixel has its own label; map labels to the run that owns that seed pixel.
+    seed_rows, seed_cols = np.nonzero(seeds)
+    label_of_seed = nearest[seed_rows, seed_cols]
+    run_of_label = np.zeros(int(nearest.max()) + 1, np.int32)
+    run_of_label[label_of_seed] = owner[seed_rows, seed_cols]
+    known = local.state != UNKNOWN
+    labels[known] = run_of_label[nearest[known]]
+    return labels
+
+
+def _densify(run: FloatArray, step_m: float) -> FloatArray:
+    if len(run) < 2:
+        return run
+    out = [run[:1]]
+    for a, b in itertools.pairwise(run):
+        k = max(1, math.ceil(float(np.hypot(*(b - a))) / step_m))
+        t = np.arange(1, k + 1)[:, None] / k
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def _sub_map(local: OccupancyMap, mask: NDArray[np.bool_]) -> OccupancyMap:
+    """The local map with only ``mask``'s cells known, cropped to their bounding box."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    state = np.where(mask, local.state, UNKNOWN)[y : y + h, x : x + w]
+    grid = Grid.of_map(local).crop((y, y + h, x, x + w))
+    occ = np.where(state == OCCUPIED, 100, np.where(state == UNKNOWN, 205, 0)).astype(np.uint8)
+    return OccupancyMap(state, occ, local.resolution, (grid.x0, grid.y0, 0.0))
+
+
+def align_pieces(
+    local: OccupancyMap,
+    view: align_stage.GlobalView,
+    route_slam: FloatArray,
+    start: Transform2D,
+    *,
+    piece_m: float = 20.0,
+    min_score: float = 0.6,
+    search_xy_m: float = 1.5,
+    search_theta_rad: float = math.radians(10.0),
+    agree_m: float = 0.5,
+    min_walls: int = 60,
+) -> Pieces:
+    """Align the local map in pieces along ``route_slam`` (N, 2), slam frame, metres.
+
+    Pieces are aligned in route order from the end (where the robot was when it reported its
+    pose), each starting from its successor's transform, and the last from ``start``. A piece
+    is trusted when it scores ``min_score`` or more and, where it meets a trusted neighbour,
+    the two transforms put that point within ``agree_m`` of each other (a piece that found a
+    wrong match jumps; drift does not). ``view`` must cover where the pieces land.
+    """
+    runs = route_pieces(route_slam, piece_m=piece_m)
+    labels = label_cells(local, runs)
+    cell_m2 = local.resolution**2
+    observed = float(np.count_nonzero(labels >= 0)) * cell_m2
+    found: list[Piece] = []
+    prior = start
+    previous: Piece | None = None
+    for i in reversed(range(len(runs))):
+        mask = labels == i
+        area = float(np.count_nonzero(mask)) * cell_m2
+        junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
+        walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
+        if walls < min_walls:
+            found.append(Piece(i, mask, prior, 0.0, False, area, junction))
+            continue
+        sub = _sub_map(local, mask)
+        result = align_stage.align(
+            sub,
+            view,
+            prior,
+            search_xy_m=search_xy_m,
+            search_theta_rad=search_theta_rad,
+            narrow_theta_rad=search_theta_rad,
+            min_score=min_score,
+            pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+        )
+        t = result.nav2_from_slam
+        trusted = result.trusted
+        if trusted and previous is not None and previous.trusted:
+            # Where this piece's route ends, its successor's begins: both must put it there.
+            meet = np.array(previous.junction)
+            gap = float(np.hypot(*(t.apply(meet) - previous.nav2_from_slam.apply(meet))))
+            trusted = gap <= agree_m
+        piece = Piece(i, mask, t, result.score, trusted, area, junction)
+        found.append(piece)
+        if trusted:
+            prior, previous = t, piece
+    found.reverse()
+    return Pieces(tuple(found), observed)
+
+
+def compose(
+    local: OccupancyMap,
+    pieces: Pieces,
+    grid: Grid,
+    *,
+    warp: Callable[[OccupancyMap, Transform2D], NDArray[np.uint8]] | None = None,
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    """The trusted pieces on ``grid`` (nav2), each through its own transform, and the cells the
+    untrusted ones land on (through theirs) that no trusted piece covers.
+
+    ``warp(piece_map, nav2_from_slam)`` puts a trusted piece (the local map with only its cells
+    known) onto ``grid``, for instance with its own drift correction; default: rigidly.
+
+    Returns ``(state, left_out)``: (rows, cols) uint8 states (UNKNOWN outside the trusted
+    pieces; where two pieces overlap, a wall in either is a wall) and (rows, cols) bool.
+    """
+    state = np.full(grid.shape, UNKNOWN, np.uint8)
+    left_out = np.zeros(grid.shape, bool)
+    disputed = np.zeros(grid.shape, bool)
+    source = Grid.of_map(local)
+    for piece in pieces.pieces:
+        if not piece.mask.any():
+            continue
+        part = np.where(piece.mask, local.state, UNKNOWN).astype(np.uint8)
+        if piece.trusted and warp is not None:
+            warped = warp(_sub_map(local, piece.mask), piece.nav2_from_slam)
+        else:
+            warped = resample(part, source, grid, piece.nav2_from_slam)
+        known = warped != UNKNOWN
+        if piece.trusted:
+            # Two pieces that saw one cell differently (a wall bent one way in one, another in
+            # the other) give no evidence there: unknown, never a difference.
+            conflict = known & (state != UNKNOWN) & (state != warped)
+            take = known & (state == UNKNOWN)
+            state[take] = warped[take]
+            state[conflict] = UNKNOWN
+            disputed |= conflict
+        else:
+            left_out |= known
+    state[disputed] = UNKNOWN
+    left_out &= state == UNKNOWN
+    return state, left_out
+
+
+def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
+    """The one rigid transform closest to the trusted pieces' (least squares over their known
+    cells, a sample of each weighted by its area): what ``result.yaml`` reports as the
+    alignment. None when no piece is trusted."""
+    src, dst = [], []
+    grid = Grid.of_map(local)
+    for piece in pieces.trusted:
+        rows, cols = np.nonzero(piece.mask)
+        step = max(1, len(rows) // 2000)
+        xy = grid.to_world(np.stack([cols[::step], rows[::step]], axis=1).astype(float))
+        src.append(xy)
+        dst.append(piece.nav2_from_slam.apply(xy))
+    if not src:
+        return None
+    a, b = np.concatenate(src), np.concatenate(dst)
+    ca, cb = a.mean(0), b.mean(0)
+    u, v = a - ca, b - cb
+    theta = math.atan2(
+        float(np.sum(u[:, 0] * v[:, 1]) - np.sum(u[:, 1] * v[:, 0])),
+        float(np.sum(u[:, 0] * v[:, 0]) + np.sum(u[:, 1] * v[:, 1])),
+    )
+    c, s = math.cos(theta), math.sin(theta)
+    return Transform2D(
+        theta, float(cb[0] - (c * ca[0] - s * ca[1])), float(cb[1] - (s * ca[0] + c * ca[1]))
+    )
+
+
+__all__ = ["Piece", "Pieces", "align_pieces", "compose", "fit_rigid", "label_cells", "route_pieces"]
