@@ -343,3 +343,17 @@ def test_a_change_approved_by_another_process_shows_in_the_daemons_next_changes_
     doc = yaml.safe_load((tmp_path / "maps" / "hall" / "changes.yaml").read_text())
     assert doc["current_version"] == 2
     assert [(c["id"], c["state"], c["version"]) for c in doc["changes"]] == [(cid, "published", 2)]
+
+
+def test_sessions_that_show_a_change_without_reporting_it_count_and_paint(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(wall_seen(robot, 0))
+    store.apply(robot.observe(8, added=(WALL,)))  # its local map shows the wall; no difference
+    last = store.apply(robot.observe(16, added=(WALL,)))
+    assert last.new_version == 2
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()  # painted, not an empty version
+    (change,) = store.changes("hall")
+    assert change.sessions == 3 and change.version == 2

@@ -167,7 +167,10 @@ class ChangeTracker:
             elif verdict == "shows":
                 # The local map shows it though the bundle's differences did not report it (too
                 # few cells this time, an edge of the observed area): a session that saw it.
-                self._support(c, np.zeros(0, np.int64), obs, stamp, lattice)
+                seen = tracker.shown_cells(
+                    c.kind, c.cells, lattice, win, obs.occupied, obs.free, tolerance_px=tol
+                )
+                self._support(c, seen, obs, stamp, lattice)
                 shown.append(c.id)
         # 3. Pending changes nobody has observed for long expire.
         limit = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)

@@ -537,10 +537,12 @@ class FleetStore:
         ]
 
     def _paint_cells(self, cid: int) -> tuple[str, IntArray]:
-        kind, sessions = self._conn.execute(
-            "SELECT kind, sessions FROM changes WHERE id = ?", (cid,)
-        ).fetchone()
-        need = min(self.settings.paint_min_sessions, sessions)
+        kind = self._conn.execute("SELECT kind FROM changes WHERE id = ?", (cid,)).fetchone()[0]
+        most = self._conn.execute(
+            "SELECT max(hits) FROM change_cells WHERE change_id = ?", (cid,)
+        ).fetchone()[0]
+        # Cells that enough of its sessions saw changed (or all of them, when fewer did).
+        need = min(self.settings.paint_min_sessions, most or 1)
         cells = np.array(
             [
                 r[0]
@@ -587,6 +589,20 @@ class FleetStore:
             else:
                 was = state[rows, cols] == OCCUPIED
                 state[rows[was], cols[was]] = FREE
+        if np.array_equal(state, self._current_state(map_id, name)):
+            # The current version already shows them (another change painted the same cells):
+            # no new version, the changes are in the current one.
+            version = self._current_version(map_id)
+            with transaction(self._conn):
+                for cid in ids:
+                    self._conn.execute(
+                        "UPDATE changes SET state = 'published', version = ?, updated_at = ? "
+                        "WHERE id = ?",
+                        (version, now_utc(), cid),
+                    )
+                    self._event(cid, actor, "published", f"already in version {version}")
+            self._dirty.update(ids)
+            return version
         return self._publish_state(
             map_id, name, lattice, yaw, state, note, published=ids, actor=actor
         )

@@ -98,6 +98,28 @@ def judge(
     return "shows" if gone else "as_before" if there else "unclear"
 
 
+def shown_cells(
+    kind: str,
+    cells: IntArray,
+    lattice: Lattice,
+    window: Window,
+    occupied: NDArray[np.bool_],
+    free: NDArray[np.bool_],
+    *,
+    tolerance_px: int,
+) -> IntArray:
+    """The cells of a change that one observation shows changed: an added obstacle's cells seen
+    occupied, a removed structure's cells seen free with nothing occupied within
+    ``tolerance_px`` (what a version paints counts these, session by session)."""
+    rows, cols, inside = window.local(lattice, cells)
+    kept = np.asarray(cells, np.int64)[inside]
+    rows, cols = rows[inside], cols[inside]
+    if kind == "added":
+        return kept[occupied[rows, cols]]
+    clear = free[rows, cols] & ~_near_occupied(occupied, rows, cols, tolerance_px)
+    return kept[clear]
+
+
 def _near_occupied(
     occupied: NDArray[np.bool_], rows: IntArray, cols: IntArray, radius_px: int
 ) -> NDArray[np.bool_]:
