@@ -357,3 +357,43 @@ def test_sessions_that_show_a_change_without_reporting_it_count_and_paint(
     assert (current(tmp_path)[WALL] == OCCUPIED).all()  # painted, not an empty version
     (change,) = store.changes("hall")
     assert change.sessions == 3 and change.version == 2
+
+
+def test_two_reviewers_approving_at_once_get_two_whole_versions(tmp_path: Path, hall: Path) -> None:
+    import threading
+
+    from mapserver.bundle import sha256_file
+
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        store.apply(
+            robot.observe(hours, added=(WALL, PERSON), found=(("added", WALL), ("added", PERSON)))
+        )
+    ids = [c.id for c in store.changes("hall", state="confirmed")]
+    assert len(ids) == 2
+    barrier = threading.Barrier(2)
+    errors: list[BaseException] = []
+
+    def approve(cid: int) -> None:
+        with FleetStore(tmp_path / "maps", REVIEW) as mine:  # the web's threads, a command
+            barrier.wait()
+            try:
+                mine.approve(cid, actor=f"reviewer-{cid}")
+            except BaseException as error:  # pragma: no cover - reported below
+                errors.append(error)
+
+    threads = [threading.Thread(target=approve, args=(cid,)) for cid in ids]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    versions = store.versions("hall")
+    assert [v.version for v in versions] == [1, 2, 3]
+    for v in versions:
+        image = v.yaml.parent / yaml.safe_load(v.yaml.read_text())["image"]
+        assert sha256_file(image) == v.sha256
+    now = current(tmp_path)
+    assert (now[WALL] == OCCUPIED).all() and (now[PERSON] == OCCUPIED).all()
+    assert sorted(c.state for c in store.changes("hall")) == ["published", "published"]

@@ -209,7 +209,8 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
     conn.execute("BEGIN IMMEDIATE")
     try:
         yield conn
+        conn.execute("COMMIT")  # may fail too (a full disk, an I/O error)
     except BaseException:
-        conn.execute("ROLLBACK")
+        if conn.in_transaction:  # else every later BEGIN would fail until a restart
+            conn.execute("ROLLBACK")
         raise
-    conn.execute("COMMIT")

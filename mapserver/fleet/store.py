@@ -10,13 +10,17 @@ rename and derived from the database; :meth:`FleetStore.sync` writes them again 
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import logging
+import os
 import shutil
 import sqlite3
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -47,6 +51,7 @@ from mapserver.fsio import dump_yaml, replace_atomic
 from mapserver.maps import FREE, OCCUPIED, load_map
 
 log = logging.getLogger(__name__)
+WRITER_LOCK = ".writer.lock"
 
 
 def lookup(root: Path, image_sha256: str) -> MapLink | None:
@@ -61,7 +66,7 @@ def lookup(root: Path, image_sha256: str) -> MapLink | None:
         row = conn.execute(
             "SELECT m.id, m.name, m.width, m.height, m.resolution, m.origin_x, m.origin_y, "
             "v.version FROM versions v JOIN maps m ON m.id = v.map_id WHERE v.sha256 = ? "
-            "ORDER BY v.version LIMIT 1",
+            "ORDER BY v.version DESC LIMIT 1",
             (image_sha256.lower(),),
         ).fetchone()
         if row is None:
@@ -102,11 +107,14 @@ class FleetStore:
         self._checkpoint = checkpoint or (lambda name: None)
         self.settings = settings or UpdateConfig()
         self._conn = connect(self.root, create=create, check=check)
+        with contextlib.suppress(OSError):  # a read-only store: its readers never take it
+            (self.root / WRITER_LOCK).touch(exist_ok=True)
         self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
         # changes.yaml is rewritten after every update: each change's YAML text is kept and
         # made again only when the change was touched (ids in _dirty).
         self._docs: dict[int, dict[int, tuple[str, str, str]]] = {}
         self._dirty: set[int] = set()
+        self._writer_depth = 0
         # Another process (an operator's approve, the web) may change the store: SQLite's
         # data_version changes when another connection commits, and the cached lines go.
         self._data_version = self._conn.execute("PRAGMA data_version").fetchone()[0]
@@ -114,6 +122,30 @@ class FleetStore:
 
     def close(self) -> None:
         self._conn.close()
+
+    @contextmanager
+    def _writer(self) -> Iterator[None]:
+        """One publication or review action at a time across processes and threads (the
+        daemon, the web's threads, a command): an exclusive flock on ``maps/.writer.lock``
+        around reading a change's state, allocating a version, writing its files and
+        committing. Reentrant within this store."""
+        if self._writer_depth:
+            self._writer_depth += 1
+            try:
+                yield
+            finally:
+                self._writer_depth -= 1
+            return
+        fd = os.open(self.root / WRITER_LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o664)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            self._writer_depth = 1
+            try:
+                yield
+            finally:
+                self._writer_depth = 0
+        finally:
+            os.close(fd)
 
     def __enter__(self) -> FleetStore:
         return self
@@ -223,6 +255,10 @@ class FleetStore:
         """Publish a NEW version equal to ``version``; history is never rewritten. Changes
         published after it are no longer in the map: they become ``rejected`` (an operator
         undid them), so that the same sightings do not publish them again."""
+        with self._writer():
+            return self._rollback(name, version, actor)
+
+    def _rollback(self, name: str, version: int, actor: str) -> VersionInfo:
         map_id, lattice, yaw, _ = self._map(name)
         row = self._conn.execute(
             "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
@@ -351,6 +387,10 @@ class FleetStore:
 
     def approve(self, change_id: int, *, actor: str = "operator") -> VersionInfo:
         """Publish a confirmed change (review mode): a new version with it."""
+        with self._writer():
+            return self._approve(change_id, actor)
+
+    def _approve(self, change_id: int, actor: str) -> VersionInfo:
         info = self.change(change_id)
         if info.state != "confirmed":
             raise StoreError(
@@ -378,6 +418,10 @@ class FleetStore:
     def reject(self, change_id: int, *, actor: str = "operator") -> ChangeInfo:
         """Reject a pending or confirmed change: it is never published, and later sightings of
         the same thing are counted on it instead of starting a new change."""
+        with self._writer():
+            return self._reject(change_id, actor)
+
+    def _reject(self, change_id: int, actor: str) -> ChangeInfo:
         info = self.change(change_id)
         if info.state not in ("pending", "confirmed"):
             raise StoreError(
@@ -455,19 +499,22 @@ class FleetStore:
         new_version = None
         published: list[int] = []
         warnings: list[str] = []
+        # The bundle is counted (committed): nothing below may fail it. A publication or a file
+        # that cannot be written now waits; sync() and the next bundles finish it.
         if self.settings.mode == "auto":
             try:
-                published = self._confirmed_ids(map_id)
-                if published:
-                    new_version = self._publish_changes(
-                        map_id,
-                        obs.map_name,
-                        lattice,
-                        yaw,
-                        published,
-                        note=f"confirmed by {obs.bundle_id}",
-                    )
-            except OSError as error:
+                with self._writer():
+                    published = self._confirmed_ids(map_id)
+                    if published:
+                        new_version = self._publish_changes(
+                            map_id,
+                            obs.map_name,
+                            lattice,
+                            yaw,
+                            published,
+                            note=f"confirmed by {obs.bundle_id}",
+                        )
+            except Exception as error:
                 published = []
                 warnings.append(
                     f"map {obs.map_name}: cannot publish a new version now ({error}); the confirmed changes wait"
@@ -476,8 +523,9 @@ class FleetStore:
                     "%s: cannot publish a new version of %s: %s", obs.bundle_id, obs.map_name, error
                 )
         try:
-            self._write_derived(obs.map_name)
-        except OSError as error:
+            with self._writer():
+                self._write_derived(obs.map_name)
+        except Exception as error:
             warnings.append(f"map {obs.map_name}: cannot rewrite changes.yaml / keepout ({error})")
             log.error(
                 "%s: cannot write the files of map %s: %s", obs.bundle_id, obs.map_name, error
@@ -519,11 +567,14 @@ class FleetStore:
         confirmed, then write current.yaml, the keepout mask and changes.yaml of every map."""
         for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
             map_id, lattice, yaw, _ = self._map(name)
-            if self.settings.mode == "auto":
-                ids = self._confirmed_ids(map_id)
-                if ids:
-                    self._publish_changes(map_id, name, lattice, yaw, ids, note="confirmed earlier")
-            self._write_derived(name, force=True)
+            with self._writer():
+                if self.settings.mode == "auto":
+                    ids = self._confirmed_ids(map_id)
+                    if ids:
+                        self._publish_changes(
+                            map_id, name, lattice, yaw, ids, note="confirmed earlier"
+                        )
+                self._write_derived(name, force=True)
 
     # -- publishing -------------------------------------------------------------------------
 
@@ -658,7 +709,16 @@ class FleetStore:
         map_id, lattice, yaw, _ = self._map(name)
         folder = self.root / name
         version = self._current_version(map_id)
-        if force or not (folder / publish.CURRENT).exists():
+        current_yaml = folder / publish.CURRENT
+        wanted = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()[0]
+        # A process that died between a version's commit and current.yaml's rename left it
+        # behind: every update compares the two (tiny) files.
+        stale = (
+            not current_yaml.exists() or current_yaml.read_bytes() != (folder / wanted).read_bytes()
+        )
+        if force or stale:
             y = self._conn.execute(
                 "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
             ).fetchone()[0]
@@ -687,14 +747,28 @@ class FleetStore:
             self._docs.clear()
             self._data_version = version_now
         docs = self._docs.get(map_id)
+        # The dirty ids of the other maps stay dirty until their own changes.yaml is written.
+        others = set()
+        if self._dirty:
+            q = ",".join("?" * len(self._dirty))
+            others = {
+                r[0]
+                for r in self._conn.execute(
+                    f"SELECT id FROM changes WHERE map_id != ? AND id IN ({q})",
+                    (map_id, *self._dirty),
+                )
+            }
         if docs is None or force:
             docs = self._docs[map_id] = {}
             fresh = self.changes(name)
         else:
-            fresh = self.changes(name, ids=self._dirty)
-            for cid in self._dirty:
+            fresh = self.changes(name, ids=self._dirty - others)
+            for cid in self._dirty - others:
                 docs.pop(cid, None)  # merged away, or about to be made again
-        self._dirty.clear()
+        self._dirty.intersection_update(others)
+        # Until the file is written, the cached lines may be ahead of it: a failed write makes
+        # the next one start from the database.
+        del self._docs[map_id]
         for c in fresh:
             docs[c.id] = (c.state, c.updated_at, dump_yaml([c.document()]).decode("utf-8"))
         cutoff = utc_stamp(
@@ -710,6 +784,7 @@ class FleetStore:
         publish.write_changes_text(
             folder, head + (b"changes:\n" + body.encode("utf-8") if body else b"changes: []\n")
         )
+        self._docs[map_id] = docs
 
     # -- rows -------------------------------------------------------------------------------
 
