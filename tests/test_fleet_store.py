@@ -4,6 +4,7 @@ late bundles, bad requests, a lost or damaged database, a full disk while publis
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import sqlite3
 from pathlib import Path
@@ -397,3 +398,36 @@ def test_two_reviewers_approving_at_once_get_two_whole_versions(tmp_path: Path, 
     now = current(tmp_path)
     assert (now[WALL] == OCCUPIED).all() and (now[PERSON] == OCCUPIED).all()
     assert sorted(c.state for c in store.changes("hall")) == ["published", "published"]
+
+
+@pytest.mark.parametrize("stamp", ["1970-01-01T00:00:00Z", "2099-01-01T00:00:00Z"])
+def test_a_robot_with_a_wrong_clock_does_not_feed_the_map(
+    tmp_path: Path, hall: Path, stamp: str
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(wall_seen(robot, 0))
+    store.apply(wall_seen(robot, 1))
+    wrong = dataclasses.replace(wall_seen(robot, 2), stamp=stamp)
+    update = store.apply(wrong)
+    assert update.warnings and "check the robot's clock" in update.warnings[0]
+    (change,) = store.changes("hall")
+    assert change.sessions == 2 and change.state == "pending"  # a 56-year span would confirm it
+
+
+def test_late_sessions_from_before_a_published_wall_do_not_erase_it(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (40, 48, 60):
+        store.apply(wall_seen(robot, hours))
+    assert store.map_info("hall").current_version == 2
+    # Three sessions from before the wall was built arrive late, judged against version 2.
+    for hours in (0, 8, 16):
+        u = store.apply(
+            robot.observe(hours, removed=(WALL,), found=(("removed", WALL),), judged_version=2)
+        )
+        assert u.created == ()
+    assert store.map_info("hall").current_version == 2
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()

@@ -100,7 +100,8 @@ class ChangeTracker:
                 and tracker.overlap(found.cells, c.cells, lattice, radius) > 0
             ]
             if not cands:
-                new.append((found.kind, found.cells))
+                if not self._outdated(found.kind, found.cells, near, live, stamp, lattice, radius):
+                    new.append((found.kind, found.cells))
                 continue
             absorbing = [c for c in cands if c.state in ("rejected", "published")]
             if absorbing:
@@ -343,6 +344,28 @@ class ChangeTracker:
             (cid, obs.bundle_id, obs.robot, stamp),
         )
         return cid
+
+    @staticmethod
+    def _outdated(
+        kind: str,
+        cells: IntArray,
+        near: tuple[int, int, int, int],
+        live: list[_Change],
+        stamp: str,
+        lattice: Lattice,
+        radius: int,
+    ) -> bool:
+        """A late bundle's difference that a published change first seen after it explains:
+        the robot saw the area before the change (the wall not yet built, the shelf still
+        there). Counted, it would undo the change."""
+        return any(
+            c.state == "published"
+            and c.kind != kind
+            and c.first_seen > stamp
+            and _boxes_meet(near, _box(c.cells, lattice, 0))
+            and tracker.overlap(cells, c.cells, lattice, radius) > 0
+            for c in live
+        )
 
     def _support(
         self, c: _Change, cells: IntArray, obs: Observation, stamp: str, lattice: Lattice

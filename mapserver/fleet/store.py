@@ -21,7 +21,7 @@ import sqlite3
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,21 @@ from mapserver.maps import FREE, OCCUPIED, load_map
 
 log = logging.getLogger(__name__)
 WRITER_LOCK = ".writer.lock"
+
+
+# How far ahead of this server's clock a bundle's stamp may be (robots without NTP drift).
+_FUTURE_TOLERANCE = timedelta(hours=24)
+_EARLIEST_STAMP = "2000-01-01T00:00:00Z"
+
+
+def _implausible_stamp(stamp: str) -> str | None:
+    """Why a bundle's stamp cannot be right (check the robot's clock), or None."""
+    if stamp < _EARLIEST_STAMP:
+        return f"its stamp {stamp} is before 2000: check the robot's clock"
+    limit = datetime.now(timezone.utc) + _FUTURE_TOLERANCE
+    if tracker.parse_stamp(stamp) > limit:
+        return f"its stamp {stamp} is more than a day ahead of this server's clock: check the robot's clock"
+    return None
 
 
 def lookup(root: Path, image_sha256: str) -> MapLink | None:
@@ -463,6 +478,18 @@ class FleetStore:
         start = time.perf_counter()
         stamp = utc_stamp(obs.stamp)
         map_id, lattice, yaw, _ = self._map(obs.map_name)
+        implausible = _implausible_stamp(stamp)
+        if implausible:
+            # A robot with a wrong clock: 1970 or next year would make a cart persist for
+            # years, or expire every pending change. Its result is written; the map is not fed.
+            return Update(
+                obs.map_name,
+                obs.bundle_version,
+                self._current_version(map_id),
+                tuple(None for _ in obs.result_cells),
+                warnings=(f"map {obs.map_name}: not applied: {implausible}",),
+                seconds=time.perf_counter() - start,
+            )
         with transaction(self._conn):
             row = self._conn.execute(
                 "SELECT outcome FROM bundles WHERE fingerprint = ?", (obs.fingerprint,)
