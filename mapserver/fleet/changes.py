@@ -122,8 +122,10 @@ class ChangeTracker:
         supported = []
         for cid, parts in assigned.items():
             c = by_id[cid]
-            if c.state == "published":
-                continue  # judged against an older version: already in the map
+            if c.state in ("published", "rejected"):
+                # Published: judged against an older version, already in the map. Rejected:
+                # an operator said no; its sightings are not counted (they would grow forever).
+                continue
             self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
             supported.append(cid)
         # 2. Changes this bundle observed without finding them: shown, or as before?

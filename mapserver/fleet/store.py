@@ -390,6 +390,26 @@ class FleetStore:
             )
         return out
 
+    def changes_digest(self, name: str) -> tuple[int, str]:
+        """(number of changes, their latest update time): what a cached view of a map's changes
+        depends on."""
+        count, latest = self._conn.execute(
+            "SELECT count(*), max(updated_at) FROM changes WHERE map_id = ?", (self._map(name)[0],)
+        ).fetchone()
+        return int(count), str(latest or "")
+
+    def outlines(self, name: str) -> list[tuple[int, str, list[list[float]]]]:
+        """(id, state, polygon) of every change of a map but the expired ones (no sightings
+        read: what a picture draws)."""
+        return [
+            (cid, state, json.loads(polygon))
+            for cid, state, polygon in self._conn.execute(
+                "SELECT id, state, polygon FROM changes WHERE map_id = ? AND state != 'expired' "
+                "ORDER BY id",
+                (self._map(name)[0],),
+            )
+        ]
+
     def change(self, change_id: int) -> ChangeInfo:
         change_id = self._changes.resolve_merged(change_id)
         row = self._conn.execute(

@@ -621,21 +621,15 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def map_picture(name: str) -> Response:
         def make(store: Any) -> bytes | None:
             info = store.map_info(name)
-            changes = [
-                c
-                for state in STATES
-                if state != "expired"
-                for c in store.changes(name, state=state)
-            ]
-            key = (
-                name,
-                info.current_version,
-                tuple((c.id, c.state, len(c.polygon)) for c in changes),
-            )
+            # What the picture shows changes only with the version and the changes' rows: one
+            # aggregate says whether the cached picture is still right.
+            key = (name, info.current_version, store.changes_digest(name))
             current = config.maps / name / "current.yaml"  # type: ignore[operator]
 
             def draw() -> bytes:
-                return pictures.map_with_changes(load_map(current).state, info.lattice, changes)
+                return pictures.map_with_changes(
+                    load_map(current).state, info.lattice, store.outlines(name)
+                )
 
             return pics.get(key, draw)
 
@@ -708,7 +702,9 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     @app.post("/login", include_in_schema=False)
     def login(
-        token_given: Annotated[str, Form(alias="token")], name: Annotated[str, Form()]
+        request: Request,
+        token_given: Annotated[str, Form(alias="token")],
+        name: Annotated[str, Form()],
     ) -> Response:
         if token is None:
             raise HTTPException(403, "review actions are off: no web.token_file is configured")
@@ -721,8 +717,10 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         response.set_cookie(
             security.COOKIE,
             security.new_session_cookie(token, name),
+            max_age=security.SESSION_HOURS * 3600,
             httponly=True,
             samesite="strict",
+            secure=request.url.scheme == "https",
         )
         return response
 

@@ -212,31 +212,24 @@ class BundleIndex:
             if not is_valid_bundle_id(bundle_id) or not entry.is_dir(follow_symlinks=False):
                 continue
             present.add(bundle_id)
-            path = Path(entry.path) / name if name else self._error_file(Path(entry.path))
-            if path is None:
-                continue
-            try:
-                st = path.stat()
-            except OSError:
-                continue
-            sig = (st.st_mtime_ns, st.st_size)
-            if into.seen.get(bundle_id) == sig:
-                continue
-            doc = read_yaml(path)
-            if doc is not None:
-                into.put(bundle_id, make(bundle_id, doc), sig)
+            # Stat first, parse only what is new or changed: a refresh of a year of bundles
+            # reads directories, not files.
+            candidates = [name] if name else [SERVER_ERROR, ERROR]
+            for file_name in candidates:
+                path = Path(entry.path) / file_name
+                try:
+                    st = path.stat()
+                except OSError:
+                    continue
+                sig = (st.st_mtime_ns, st.st_size)
+                if into.seen.get(bundle_id) == sig:
+                    break
+                doc = read_yaml(path)
+                if doc is not None and (name or {"stage", "reason"} <= set(doc)):
+                    into.put(bundle_id, make(bundle_id, doc), sig)
+                    break
         for gone in set(into.rows) - present:
             into.drop(gone)
-
-    @staticmethod
-    def _error_file(bundle_dir: Path) -> Path | None:
-        for name in (SERVER_ERROR, ERROR):
-            path = bundle_dir / name
-            if path.is_file():
-                doc = read_yaml(path)
-                if doc is not None and {"stage", "reason"} <= set(doc):
-                    return path
-        return None
 
     # -- reading ----------------------------------------------------------------------------
 

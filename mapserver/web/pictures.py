@@ -11,7 +11,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.fleet.lattice import Lattice
-from mapserver.fleet.model import ChangeInfo
 from mapserver.maps import FREE, OCCUPIED
 from mapserver.render import encode_png
 
@@ -54,7 +53,7 @@ def _shrunk(state: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
 def map_with_changes(
     state: NDArray[np.uint8],
     lattice: Lattice,
-    changes: Sequence[ChangeInfo],
+    changes: Sequence[tuple[int, str, list[list[float]]]],
     *,
     max_side_px: int = 1600,
 ) -> bytes:
@@ -66,19 +65,19 @@ def map_with_changes(
     if upscale > 1:
         image = cv2.resize(image, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_NEAREST)
     px_per_cell = upscale / factor
-    for c in changes:
-        if len(c.polygon) < 2:
+    for cid, change_state, polygon in changes:
+        if len(polygon) < 2:
             continue
-        xy = np.array(c.polygon, float)
+        xy = np.array(polygon, float)
         cols = (xy[:, 0] - lattice.x0) / lattice.resolution * px_per_cell
         rows = (lattice.height - (xy[:, 1] - lattice.y0) / lattice.resolution) * px_per_cell
         pts = np.round(np.stack([cols, rows], 1)).astype(np.int32)
-        colour = STATE_COLOURS.get(c.state, (0, 0, 0))
+        colour = STATE_COLOURS.get(change_state, (0, 0, 0))
         cv2.polylines(image, [pts], True, colour, 2, cv2.LINE_AA)
         x, y = pts.min(axis=0)
         cv2.putText(
             image,
-            str(c.id),
+            str(cid),
             (int(x), max(10, int(y) - 3)),
             cv2.FONT_HERSHEY_SIMPLEX,
             0.45,

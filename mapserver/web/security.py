@@ -18,6 +18,7 @@ import hmac
 import ipaddress
 import re
 import secrets
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,17 +82,30 @@ def valid_name(name: str) -> bool:
     return bool(_NAME.match(name))
 
 
-def new_session_cookie(token: str, name: str) -> str:
+SESSION_HOURS = 12
+
+
+def new_session_cookie(token: str, name: str, *, now: float | None = None) -> str:
     sid = secrets.token_urlsafe(16)
-    return f"{sid}.{name}.{_mac(token, 'session', sid, name)}"
+    issued = str(int(time.time() if now is None else now))
+    return f"{sid}.{issued}.{name}.{_mac(token, 'session', sid, issued, name)}"
 
 
-def read_session(token: str | None, cookie: str | None) -> Session | None:
-    if token is None or not cookie or cookie.count(".") < 2:
+def read_session(
+    token: str | None, cookie: str | None, *, now: float | None = None
+) -> Session | None:
+    """The signed-in person of a session cookie; None when it is forged, or older than
+    ``SESSION_HOURS`` (sign in again)."""
+    if token is None or not cookie or cookie.count(".") < 3:
         return None
-    sid, rest = cookie.split(".", 1)
+    sid, issued, rest = cookie.split(".", 2)
     name, _, mac = rest.rpartition(".")
-    if not valid_name(name) or not same(mac, _mac(token, "session", sid, name)):
+    if not valid_name(name) or not issued.isdigit():
+        return None
+    if not same(mac, _mac(token, "session", sid, issued, name)):
+        return None
+    age = (time.time() if now is None else now) - int(issued)
+    if not 0 <= age <= SESSION_HOURS * 3600:
         return None
     return Session(name, sid)
 
