@@ -94,13 +94,18 @@ class FleetStore:
         *,
         create: bool = True,
         checkpoint: Callable[[str], None] | None = None,
+        busy_timeout_s: float = 30.0,
     ):
         self.root = Path(root)
         # Test hook: called at named steps ("evidence-applied" inside the bundle's transaction,
         # "bundle-applied" after its commit, "version-written" before a version's commit).
         self._checkpoint = checkpoint or (lambda name: None)
         self.settings = settings or UpdateConfig()
-        self._conn = connect(self.root, create=create)
+        self._conn = connect(self.root, create=create, timeout=busy_timeout_s)
+        self.unwritten: OSError | None = None
+        """Why the store's files (versions, current.yaml, the keepout mask, changes.yaml) lag
+        its database: the error of the last write that failed (a full disk), None once they are
+        written again (:meth:`apply` or :meth:`sync`)."""
         self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
         # changes.yaml is rewritten after every update: each change's YAML text is kept and
         # made again only when the change was touched (ids in _dirty).
@@ -404,6 +409,7 @@ class FleetStore:
                 ),
             )
         self._checkpoint("bundle-applied")
+        unwritten: OSError | None = None
         new_version = None
         published: list[int] = []
         warnings: list[str] = []
@@ -421,6 +427,7 @@ class FleetStore:
                     )
             except OSError as error:
                 published = []
+                unwritten = error
                 warnings.append(
                     f"map {obs.map_name}: cannot publish a new version now ({error}); the confirmed changes wait"
                 )
@@ -430,10 +437,12 @@ class FleetStore:
         try:
             self._write_derived(obs.map_name)
         except OSError as error:
+            unwritten = error
             warnings.append(f"map {obs.map_name}: cannot rewrite changes.yaml / keepout ({error})")
             log.error(
                 "%s: cannot write the files of map %s: %s", obs.bundle_id, obs.map_name, error
             )
+        self.unwritten = unwritten
         return Update(
             obs.map_name,
             obs.bundle_version,
@@ -469,13 +478,19 @@ class FleetStore:
         """Bring the files in line with the database (after a crash between a commit and the
         files, or a publication that failed on a full disk): publish what auto mode has
         confirmed, then write current.yaml, the keepout mask and changes.yaml of every map."""
-        for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
-            map_id, lattice, yaw, _ = self._map(name)
-            if self.settings.mode == "auto":
-                ids = self._confirmed_ids(map_id)
-                if ids:
-                    self._publish_changes(map_id, name, lattice, yaw, ids, note="confirmed earlier")
-            self._write_derived(name, force=True)
+        try:
+            for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
+                map_id, lattice, yaw, _ = self._map(name)
+                if self.settings.mode == "auto":
+                    ids = self._confirmed_ids(map_id)
+                    if ids:
+                        note = "confirmed earlier"
+                        self._publish_changes(map_id, name, lattice, yaw, ids, note=note)
+                self._write_derived(name, force=True)
+        except OSError as error:
+            self.unwritten = error
+            raise
+        self.unwritten = None
 
     # -- publishing -------------------------------------------------------------------------
 
