@@ -207,6 +207,34 @@ def _cmd_status(args: argparse.Namespace) -> int:
 _NOT_RUNNING = 3
 
 
+def _cmd_requeue(args: argparse.Namespace) -> int:
+    from mapserver.requeue import failed_since, parse_time, requeue
+
+    config = load_config(args.config)
+    ids = list(args.ids)
+    if args.failed_since is not None:
+        try:
+            since = parse_time(args.failed_since)
+        except ValueError:
+            raise MapserverError(
+                f"--failed-since: not a date or time: {args.failed_since!r} (give 2026-11-21 "
+                "or 2026-11-21T10:15:00Z)",
+                stage="requeue",
+            ) from None
+        ids += failed_since(config, since)
+        if not ids:
+            sys.stdout.write(f"no bundle in {config.failed} failed since {since.isoformat()}\n")
+            return 0
+    elif not ids:
+        raise MapserverError("give the ids of failed bundles, or --failed-since DATE")
+    for done in requeue(config, ids):
+        sys.stdout.write(
+            f"requeued {done.bundle_id} (failed {done.failed_at} at stage {done.stage}: "
+            f"{done.reason}) -> {done.path}\n"
+        )
+    return 0
+
+
 # -- mapserver bundle (the robot side) -------------------------------------------------------
 
 
@@ -633,6 +661,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
     p.set_defaults(func=_cmd_status)
+
+    p = _command(
+        sub,
+        "requeue",
+        "send failed bundles back to the inbox, to be processed again",
+        "Move each failed bundle (failed/<id>/) back into the inbox by one rename, once the "
+        "cause is fixed (a missing reference_map, a limit raised, an upgrade); the daemon, "
+        "running or started later, takes it like any upload. Its error.yaml stays with it as "
+        ".mapserver-history/error-<n>.yaml (the server never reads dot-names). An id that is "
+        "not in failed/ is refused (exit 1), and then nothing is moved.",
+        "  mapserver requeue --config /etc/mapserver/mapserver.yaml run-0042 run-0043\n"
+        "  mapserver requeue --config /etc/mapserver/mapserver.yaml --failed-since 2026-11-21",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument(
+        "--failed-since",
+        default=None,
+        metavar="DATE",
+        help="every bundle that failed at or after DATE (2026-11-21, or 2026-11-21T10:15:00Z; "
+        "UTC when no zone is given)",
+    )
+    p.add_argument("ids", nargs="*", metavar="ID", help="a bundle id in failed/")
+    p.set_defaults(func=_cmd_requeue)
 
     p = _command(
         sub,
