@@ -50,6 +50,7 @@ from mapserver.inbox import (
 from mapserver.lock import daemon_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store, utc_now
+from mapserver.retention import Retention
 from mapserver.status import write_status
 from mapserver.worker import ProcessFn, WorkDone, init_worker, noop, process_taken_bundle, work
 
@@ -202,6 +203,7 @@ class Service:
         }
         if config.maps is not None:
             self._folders["maps"] = config.maps
+        self._retention = Retention(config.retention, self._folders, keep=self._under_review)
         self._stopping = False
         self._abort = False
         self.ready = threading.Event()
@@ -347,6 +349,7 @@ class Service:
                 # Idle: fold waiting evidence into its counters, a few tiles a turn.
                 _guarded("fleet", self._fold_evidence)
             self._health.update(self._faults(), self._waiting_count())
+            _guarded("retention", self._retention.step)  # a few entries a turn, hourly
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
@@ -786,6 +789,10 @@ class Service:
             if not is_transient(error):
                 raise
             self._store_fault = fault_of(error, self._folders, "maps")
+
+    def _under_review(self) -> set[str]:
+        """Bundles whose files retention keeps: seen in a change not yet decided."""
+        return set() if self._fleet is None else self._fleet.bundles_under_review()
 
     def _faults(self) -> list[Fault]:
         faults = [item.fault for item in self._waiting]

@@ -458,6 +458,17 @@ class FleetStore:
             seconds=time.perf_counter() - start,
         )
 
+    def bundles_under_review(self) -> set[str]:
+        """The ids of the bundles a change not yet decided (pending or confirmed) was seen in:
+        the ones whose files (result, archived bundle) a person reviewing it may look at."""
+        return {
+            row[0]
+            for row in self._conn.execute(
+                "SELECT DISTINCT s.bundle_id FROM sightings s JOIN changes c "
+                "ON c.id = s.change_id WHERE c.state IN ('pending', 'confirmed')"
+            )
+        }
+
     def fold_evidence(self, *, max_tiles: int = 16) -> int:
         """Fold the pending evidence of up to ``max_tiles`` tiles into their counters (the
         daemon calls it when idle). Returns the deltas folded; 0 when nothing waits."""
