@@ -12,6 +12,7 @@ import logging
 import math
 import os
 import re
+import shlex
 import shutil
 import signal
 import socket
@@ -26,6 +27,7 @@ from typing import Any
 
 import yaml
 
+from mapserver.bundle import UPLOAD_TO
 from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
 from mapserver.fleet.cli import open_store
@@ -322,6 +324,7 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
         is_valid_bundle_id,
         parse_manifest,
         sha256_file,
+        upload_commands,
     )
 
     out_dir = Path(args.output)
@@ -363,12 +366,11 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
         if created:  # leave nothing half-made behind
             shutil.rmtree(out_dir, ignore_errors=True)
         raise
-    where = out_dir.resolve()
+    commands = upload_commands(str(args.output), args.upload_to)
     sys.stdout.write(
-        f"wrote bundle {bundle_id} in {where} ({len(files) + 1} files)\n"
-        "upload it with two rsync calls, the manifest last:\n"
-        f"  rsync -a --exclude={MANIFEST} {where}/ SERVER:INBOX/{bundle_id}/\n"
-        f"  rsync -a {where}/{MANIFEST} SERVER:INBOX/{bundle_id}/\n"
+        f"wrote bundle {bundle_id} in {out_dir.resolve()} ({len(files) + 1} files)\n"
+        "upload it with two rsync calls, the manifest last (README: Deploying):\n"
+        + "".join(f"  {shlex.join(command)}\n" for command in commands)
     )
     return 0
 
@@ -741,6 +743,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="slam-frame poses, oldest first: lines 'x y yaw' or a YAML list",
     )
     p.add_argument("--robot", default=None, help="robot id (default: the host name)")
+    p.add_argument(
+        "--upload-to",
+        default=UPLOAD_TO,
+        metavar="DEST",
+        help=f"the rsync destination of the inbox, in the upload commands printed (default: "
+        f"{UPLOAD_TO}, the ssh host of the README's deployment)",
+    )
     p.add_argument("--stamp", default=None, help="when the maps were saved (default: now)")
     p.add_argument(
         "-o",
