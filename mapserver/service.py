@@ -318,7 +318,7 @@ class Service:
             "next start)",
             self._counts.results,
             self._counts.failed,
-            len(self._queue),
+            len(self._queue) + len(self._waiting),  # those that waited for a fault too
         )
         return code
 
