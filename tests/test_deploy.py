@@ -10,6 +10,7 @@ import shlex
 import shutil
 import stat
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -118,3 +119,35 @@ def test_the_readme_upload_goes_through_the_forced_command_into_a_running_daemon
         capture_output=True,
     )
     assert not Path("/etc/mapserver-test").exists(), escape
+
+
+def test_the_readmes_backup_of_a_store_in_use_restores_every_map_and_bundle(
+    tmp_path: Path,
+) -> None:
+    from mapserver.config import UpdateConfig
+    from mapserver.fleet.store import FleetStore
+    from tests.fleet_support import WALL, Robot, write_building
+
+    (code,) = re.findall(r"python3 -c '([^']+)' SRC DST", deploying())
+    hall = write_building(tmp_path / "src")
+    robot = Robot("r1")
+    live = tmp_path / "maps"
+    settings = UpdateConfig(mode="auto", confirm_sessions=1, confirm_span_hours=0)
+    with FleetStore(live, settings) as store:
+        store.add_map("hall", hall)
+        store.apply(robot.observe(0, added=(WALL,), found=(("added", WALL),)))  # version 2
+        backup = tmp_path / "backup"
+        backup.mkdir()
+        # While the store is open (the daemon runs): the database first, then the files.
+        subprocess.run(
+            [sys.executable, "-c", code, str(live / "store.db"), str(backup / "store.db")],
+            check=True,
+        )
+        shutil.copytree(live / "hall", backup / "hall")
+        versions = [(v.version, v.sha256) for v in store.versions("hall")]
+        assert [v for v, _ in versions] == [1, 2]
+    with FleetStore(backup, UpdateConfig(mode="auto")) as restored:
+        restored.sync()
+        assert [(v.version, v.sha256) for v in restored.versions("hall")] == versions
+        assert restored.map_info("hall").bundles == 1
+    assert (backup / "hall" / "current.yaml").read_text().count("v0002.pgm") == 1
