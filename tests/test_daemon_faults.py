@@ -90,6 +90,11 @@ def test_a_full_disk_keeps_two_good_bundles_waiting_and_does_each_once_when_spac
             )
             found = report(load_config(config))
             assert found.degraded is not None and found.degraded["waiting"] == 2
+            lines = found.lines(load_config(config))
+            assert (
+                lines[1].startswith("health:    DEGRADED since 20") and "2 bundles wait" in lines[1]
+            )
+            assert lines[2].startswith(f"  outbox {disk / 'outbox'}: No space left on device (")
             (fault,) = found.degraded["faults"]
             assert fault["folder"] == "outbox" and fault["reason"] == "No space left on device"
             assert fault["free_bytes"] < 4096
