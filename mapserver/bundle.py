@@ -47,6 +47,27 @@ def is_valid_bundle_id(name: str) -> bool:
     return BUNDLE_ID_RE.fullmatch(name) is not None
 
 
+UPLOAD_TO = "mapserver-inbox:"
+"""The rsync destination a robot uploads to (README, "Deploying"): an ssh ``Host`` whose key
+the server restricts to writing into the inbox (rrsync), so a path is relative to the inbox."""
+
+
+def upload_commands(bundle_dir: str, destination: str = UPLOAD_TO) -> list[list[str]]:
+    """The two rsync calls that upload bundle folder ``bundle_dir`` to the inbox at
+    ``destination`` (README, "Deploying"): first the maps, group-writable (the daemon moves the
+    folder) with rsync's partial files under a dot-name (never read), then ``bundle.yaml``
+    alone, last: when it arrives, the upload is complete."""
+    source = bundle_dir.rstrip("/") or "/"
+    bundle_id = Path(source).name
+    sep = "" if destination.endswith((":", "/")) else "/"
+    target = f"{destination}{sep}{bundle_id}/"
+    common = ["rsync", "-a", "--chmod=D2770,F660"]
+    return [
+        [*common, "--partial-dir=.rsync-partial", f"--exclude={MANIFEST}", f"{source}/", target],
+        [*common, f"{source}/{MANIFEST}", target],
+    ]
+
+
 def is_in_flight(name: str) -> bool:
     """Names of files still being uploaded (rsync temp names, editor backups): never read."""
     return name.startswith(".") or name.endswith((".tmp", ".part", "~"))

@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import re
+import shlex
 import shutil
 import signal
 import socket
@@ -27,6 +28,7 @@ from typing import Any
 
 import yaml
 
+from mapserver.bundle import UPLOAD_TO
 from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
 from mapserver.errors import MapFileError, MapserverError
 from mapserver.fleet.cli import open_store
@@ -241,6 +243,34 @@ def _cmd_status(args: argparse.Namespace) -> int:
 _NOT_RUNNING = 3
 
 
+def _cmd_requeue(args: argparse.Namespace) -> int:
+    from mapserver.requeue import failed_since, parse_time, requeue
+
+    config = load_config(args.config)
+    ids = list(args.ids)
+    if args.failed_since is not None:
+        try:
+            since = parse_time(args.failed_since)
+        except ValueError:
+            raise MapserverError(
+                f"--failed-since: not a date or time: {args.failed_since!r} (give 2026-11-21 "
+                "or 2026-11-21T10:15:00Z)",
+                stage="requeue",
+            ) from None
+        ids += failed_since(config, since)
+        if not ids:
+            sys.stdout.write(f"no bundle in {config.failed} failed since {since.isoformat()}\n")
+            return 0
+    elif not ids:
+        raise MapserverError("give the ids of failed bundles, or --failed-since DATE")
+    for done in requeue(config, ids):
+        sys.stdout.write(
+            f"requeued {done.bundle_id} (failed {done.failed_at} at stage {done.stage}: "
+            f"{done.reason}) -> {done.path}\n"
+        )
+    return 0
+
+
 # -- mapserver bundle (the robot side) -------------------------------------------------------
 
 
@@ -328,6 +358,7 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
         is_valid_bundle_id,
         parse_manifest,
         sha256_file,
+        upload_commands,
     )
 
     out_dir = Path(args.output)
@@ -369,12 +400,11 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
         if created:  # leave nothing half-made behind
             shutil.rmtree(out_dir, ignore_errors=True)
         raise
-    where = out_dir.resolve()
+    commands = upload_commands(str(args.output), args.upload_to)
     sys.stdout.write(
-        f"wrote bundle {bundle_id} in {where} ({len(files) + 1} files)\n"
-        "upload it with two rsync calls, the manifest last:\n"
-        f"  rsync -a --exclude={MANIFEST} {where}/ SERVER:INBOX/{bundle_id}/\n"
-        f"  rsync -a {where}/{MANIFEST} SERVER:INBOX/{bundle_id}/\n"
+        f"wrote bundle {bundle_id} in {out_dir.resolve()} ({len(files) + 1} files)\n"
+        "upload it with two rsync calls, the manifest last (README: Deploying):\n"
+        + "".join(f"  {shlex.join(command)}\n" for command in commands)
     )
     return 0
 
@@ -773,6 +803,29 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = _command(
         sub,
+        "requeue",
+        "send failed bundles back to the inbox, to be processed again",
+        "Move each failed bundle (failed/<id>/) back into the inbox by one rename, once the "
+        "cause is fixed (a missing reference_map, a limit raised, an upgrade); the daemon, "
+        "running or started later, takes it like any upload. Its error.yaml stays with it as "
+        ".mapserver-history/error-<n>.yaml (the server never reads dot-names). An id that is "
+        "not in failed/ is refused (exit 1), and then nothing is moved.",
+        "  mapserver requeue --config /etc/mapserver/mapserver.yaml run-0042 run-0043\n"
+        "  mapserver requeue --config /etc/mapserver/mapserver.yaml --failed-since 2026-11-21",
+    )
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument(
+        "--failed-since",
+        default=None,
+        metavar="DATE",
+        help="every bundle that failed at or after DATE (2026-11-21, or 2026-11-21T10:15:00Z; "
+        "UTC when no zone is given)",
+    )
+    p.add_argument("ids", nargs="*", metavar="ID", help="a bundle id in failed/")
+    p.set_defaults(func=_cmd_requeue)
+
+    p = _command(
+        sub,
         "process",
         "process bundle folders once, without the daemon",
         "Process each bundle folder given, write its result to the outbox (replacing an earlier "
@@ -827,6 +880,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="slam-frame poses, oldest first: lines 'x y yaw' or a YAML list",
     )
     p.add_argument("--robot", default=None, help="robot id (default: the host name)")
+    p.add_argument(
+        "--upload-to",
+        default=UPLOAD_TO,
+        metavar="DEST",
+        help=f"the rsync destination of the inbox, in the upload commands printed (default: "
+        f"{UPLOAD_TO}, the ssh host of the README's deployment)",
+    )
     p.add_argument("--stamp", default=None, help="when the maps were saved (default: now)")
     p.add_argument(
         "-o",

@@ -134,6 +134,19 @@ class LimitsConfig(_Frozen):
         return (self.min_resolution_m, self.max_resolution_m)
 
 
+class RetentionConfig(_Frozen):
+    """How long the daemon keeps what it is done with; null (the default): for ever."""
+
+    archive_days: float | None = Field(None, gt=0)
+    """Processed bundles in archive/ older than this are deleted."""
+    failed_days: float | None = Field(None, gt=0)
+    """Rejected bundles in failed/ (with their error.yaml) older than this are deleted."""
+    outbox_days: float | None = Field(None, gt=0)
+    """Results in the outbox older than this are deleted."""
+    every_hours: float = Field(1.0, gt=0)
+    """How often the daemon looks (each look is spread over many turns of its main loop)."""
+
+
 class PipelineConfig(_Frozen):
     align: AlignConfig = AlignConfig()
     roi: RoiConfig = RoiConfig()
@@ -199,6 +212,7 @@ class Config(_Frozen):
     maps: Path | None = None
     """The map store (contract section 7); null turns the fleet map's update off."""
     update: UpdateConfig = UpdateConfig()
+    retention: RetentionConfig = RetentionConfig()
     web: WebConfig | None = None
     """The web pages and API; null (the default) turns them off for ``mapserver run``
     (``mapserver web`` then serves with the defaults)."""

@@ -122,7 +122,9 @@ def store_lock(root: Path) -> Iterator[Path]:
 @contextlib.contextmanager
 def _hold(path: Path, busy: Callable[[int | None], MapserverError]) -> Iterator[Path]:
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o664)
+        # Held open read-only (a flock needs no more): a file held open for writing would keep
+        # the filesystem from being remounted read-only.
+        fd = os.open(path, os.O_RDONLY | os.O_CREAT | os.O_CLOEXEC, 0o664)
     except OSError as error:
         raise ConfigError(f"cannot open the lock file: {error.strerror}", file=path) from None
     try:
@@ -131,11 +133,23 @@ def _hold(path: Path, busy: Callable[[int | None], MapserverError]) -> Iterator[
             if time.monotonic() >= deadline:
                 raise busy(_read_pid(fd))
             time.sleep(0.01)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _write_pid(path)
         yield path
     finally:
         os.close(fd)  # releases the lock
+
+
+def _write_pid(path: Path) -> None:
+    """Over the old pid first, then cut: on a full disk the file's block is reused; a pid that
+    cannot be written (it is only for messages) does not stop the daemon."""
+    text = f"{os.getpid()}\n".encode()
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
+        try:
+            os.pwrite(fd, text, 0)
+            os.ftruncate(fd, len(text))
+        finally:
+            os.close(fd)
 
 
 def _try_lock(fd: int, kind: int) -> bool:

@@ -253,7 +253,14 @@ class Store:
             with suppress(FileNotFoundError):
                 (path / _PROBE).rmdir()
         current = self.taken / _PROBE
-        current.mkdir()
+        try:
+            current.mkdir()
+        except OSError as error:
+            if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            # A full disk is no reason not to start (the daemon waits for space, degraded).
+            log.warning("cannot check that bundles can move by rename now: %s", error.strerror)
+            return
         try:
             for nxt in hops[1:]:
                 try:
@@ -413,9 +420,14 @@ class Store:
         return self._finish_fail(bundle_id, staged)
 
     def fail(self, bundle_id: str, stage: str, reason: str) -> Path:
-        """Move ``.taken/<bundle_id>`` to ``failed/<bundle_id>/`` with error.yaml."""
+        """Move ``.taken/<bundle_id>`` to ``failed/<bundle_id>/`` with error.yaml (also when a
+        fault stopped an earlier call after the move: then only error.yaml is added)."""
         reason = _within(reason, self.taken / bundle_id)
         staged = self._stage_error(bundle_id, stage, reason)
+        target = self.failed_dir / bundle_id
+        if not os.path.lexists(self.taken / bundle_id) and os.path.lexists(target):
+            self._place_error(staged, target)
+            return target
         return self._finish_fail(bundle_id, staged)
 
     def _staged(self, bundle_id: str) -> Path:
@@ -427,8 +439,13 @@ class Store:
         partial = staged.with_name(staged.name + ".tmp")
         with suppress(FileNotFoundError):
             partial.unlink()
-        _write(partial, _dump(error_document(bundle_id, stage, reason)))
-        _rename(partial, staged)
+        try:
+            _write(partial, _dump(error_document(bundle_id, stage, reason)))
+            _rename(partial, staged)
+        except OSError:  # a full disk: leave no partial error document behind
+            with suppress(OSError):
+                partial.unlink()
+            raise
         self._checkpoint("error-staged")
         return staged
 
@@ -447,11 +464,29 @@ class Store:
 
     def _place_error(self, staged: Path, target: Path) -> None:
         # Never overwrite an input: a bundle that holds its own error.yaml keeps it.
-        for n in count(1):
-            name = ERROR if n == 1 else f"mapserver-error{'' if n == 2 else n - 1}.yaml"
+        for name in _error_names():
             if not os.path.lexists(target / name):
                 _rename(staged, target / name)
                 return
+
+
+def _error_names() -> Iterator[str]:
+    """The names the daemon's error document takes in ``failed/<id>/``, the first one free:
+    ``error.yaml``, then (the bundle brought its own) ``mapserver-error.yaml``,
+    ``mapserver-error2.yaml`` ..."""
+    for n in count(1):
+        yield ERROR if n == 1 else f"mapserver-error{'' if n == 2 else n - 1}.yaml"
+
+
+def daemon_error(failed_bundle: Path) -> Path | None:
+    """The daemon's error document in ``failed/<id>/`` (the last of :func:`_error_names` that
+    is there), None when there is none."""
+    found = None
+    for name in _error_names():
+        if not os.path.lexists(failed_bundle / name):
+            return found
+        found = failed_bundle / name
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def _within(reason: str, bundle: Path) -> str:

@@ -17,7 +17,6 @@ import itertools
 import logging
 import multiprocessing
 import os
-import select
 import signal
 import threading
 import time
@@ -36,16 +35,9 @@ from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
-from mapserver.board import (
-    FAULT_ENV,
-    Board,
-    inject_fault,
-    limit_address_space,
-    parse_faults,
-    resident_bytes,
-)
+from mapserver.board import Board, resident_bytes
 from mapserver.config import Config, check_paths
-from mapserver.errors import MapserverError, OutOfMemory
+from mapserver.faults import Fault, Health, fault_of, is_transient
 from mapserver.inbox import (
     EVENT_TYPES,
     Decision,
@@ -58,20 +50,19 @@ from mapserver.inbox import (
 from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store, utc_now
+from mapserver.retention import Retention
 from mapserver.status import write_status
 from mapserver.trust import trust_notice
+from mapserver.worker import ProcessFn, WorkDone, init_worker, noop, process_taken_bundle, work
 
 if TYPE_CHECKING:
     from mapserver.fleet.store import FleetStore
-    from mapserver.pipeline import Outcome
 
 log = logging.getLogger(__name__)
 
 CRASH_ENV = "MAPSERVER_TEST_CRASH_AT"
 """Test hook: the name of a checkpoint (see :class:`~mapserver.outbox.Store`, plus
 ``submitted``) at which the daemon kills itself with SIGKILL, to test recovery from each one."""
-
-ProcessFn = Callable[..., "Outcome"]
 
 
 def env_checkpoint() -> Callable[[str], None]:
@@ -83,106 +74,6 @@ def env_checkpoint() -> Callable[[str], None]:
             os.kill(os.getpid(), signal.SIGKILL)
 
     return checkpoint
-
-
-# -- the worker side ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class WorkDone:
-    """What a worker returns: an outcome, or the stage and reason it failed."""
-
-    outcome: Outcome | None
-    stage: str = ""
-    reason: str = ""
-    seconds: float = 0.0
-
-
-def _exit_with(pid: int) -> None:
-    """End this worker when process ``pid`` (the daemon) ends, whatever the way.
-
-    Without it the workers of a daemon killed with -9 wait forever on their task queue: each
-    holds both ends of its pipe, so it never sees EOF (and it keeps the fork server alive too).
-    """
-    try:
-        pidfd: int | None = os.pidfd_open(pid)
-    except ProcessLookupError:
-        os._exit(1)
-    except (AttributeError, OSError):  # no pidfd (old kernel): look once a second
-        pidfd = None
-
-    def watch() -> None:
-        if pidfd is not None:
-            select.select([pidfd], [], [])
-        else:
-            while _alive(pid):
-                time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="mapserver-watch-daemon", daemon=True).start()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-@dataclass
-class _Worker:
-    """This worker process's part: its slot on the pool's board, its memory limit, the bundle
-    in hand and the test faults."""
-
-    board: Board | None = None
-    memory_limit_mb: int = 0
-    bundle_id: str = ""
-    faults: dict[tuple[str, str], str] | None = None
-
-
-_WORKER = _Worker()
-
-
-def _init_worker(
-    setup: Callable[[], None] | None,
-    daemon_pid: int,
-    threads: int,
-    board: Board | None = None,
-    memory_limit_mb: int = 0,
-) -> None:
-    _exit_with(daemon_pid)
-    # The pool already keeps every core busy: OpenCV's own threads on top would only contend.
-    import cv2
-
-    from mapserver.pipeline import on_stage
-
-    cv2.setNumThreads(threads)
-    # Stopping is the parent's business: a Ctrl-C in a terminal reaches the whole process group,
-    # and a worker that died of it would look like a crash.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    if board is not None:
-        board.join()
-    _WORKER.board = board
-    _WORKER.memory_limit_mb = memory_limit_mb
-    _WORKER.faults = parse_faults(os.environ.get(FAULT_ENV, ""))
-    on_stage(_entered_stage)
-    if setup is not None:
-        setup()
-    if memory_limit_mb:
-        limit_address_space(memory_limit_mb)
-
-
-def _entered_stage(name: str) -> None:
-    """The pipeline's stage listener in a worker: tell the main process."""
-    if _WORKER.board is not None:
-        _WORKER.board.stage(name)
-    fault = (_WORKER.faults or {}).get((_WORKER.bundle_id, name))
-    if fault is not None:
-        inject_fault(fault, memory_limit_mb=_WORKER.memory_limit_mb)
 
 
 # How long watchdog's inotify emitter holds a move out of the inbox, waiting for its pair.
@@ -197,49 +88,9 @@ except ImportError:  # watchdog < 7 (InotifyBuffer, the same half second), or no
 _POLL_TURN_S = 0.05
 
 
-def process_taken_bundle(bundle_dir: Path, config: Config, *, bundle_id: str) -> Outcome:
-    """The workers' default process function: :func:`process_bundle` on a bundle the daemon
-    took, whose checksums it verified when it took it (the bundle has been in the daemon's own
-    staging folder since), so they are not hashed a second time."""
-    from mapserver.pipeline import process_bundle  # workers have it (fork server preload)
-
-    return process_bundle(bundle_dir, config, bundle_id=bundle_id, checksums_verified=True)
-
-
 def _broke(future: Future[WorkDone]) -> bool:
     """Whether a finished job's worker pool broke under it (a worker process died)."""
     return not future.cancelled() and isinstance(future.exception(), BrokenProcessPool)
-
-
-def _noop() -> None:
-    return None
-
-
-def work(
-    process: ProcessFn, bundle_dir: str, config: Config, bundle_id: str, token: int = 0
-) -> WorkDone:
-    """Run in a worker: process one bundle; bad input becomes a :class:`WorkDone` with a reason.
-    ``token`` names the job on the pool's board while it runs."""
-    start = time.perf_counter()
-    if _WORKER.board is not None:
-        _WORKER.board.begin(token)
-    _WORKER.bundle_id = bundle_id
-    try:
-        outcome = process(Path(bundle_dir), config, bundle_id=bundle_id)
-    except MapserverError as error:
-        reason = error.reason
-        if isinstance(error, OutOfMemory) and _WORKER.memory_limit_mb:
-            reason += f" (worker_memory_mb: {_WORKER.memory_limit_mb})"
-        return WorkDone(None, error.stage, reason, time.perf_counter() - start)
-    except Exception as error:
-        log.exception("%s: internal error", bundle_id)
-        reason = f"internal error: {type(error).__name__}: {error}"
-        return WorkDone(None, "process", reason, time.perf_counter() - start)
-    finally:
-        _WORKER.bundle_id = ""
-        if _WORKER.board is not None:
-            _WORKER.board.end()
-    return WorkDone(outcome, seconds=time.perf_counter() - start)
 
 
 # -- the parent side ----------------------------------------------------------------------------
@@ -258,6 +109,22 @@ class _Job:
     """Its name on the worker pool's board."""
     over_limit: tuple[str, str] | None = None
     """(stage, reason): its worker was stopped past the time or memory limit."""
+    published: bool = False
+    """Its result is in the outbox (a fault stopped the move to archive/ after it)."""
+    waits: bool = False
+    """It has waited for a fault of the server's folders (:class:`_Waiting`)."""
+
+
+@dataclass
+class _Waiting:
+    """A bundle whose result, move to archive/ or failure could not be written because the
+    server's folders or map store failed (:mod:`mapserver.faults`): it stays taken, and is
+    written when the fault goes, not processed again."""
+
+    job: _Job
+    fault: Fault
+    done: WorkDone | None = None
+    failure: tuple[str, str] | None = None
 
 
 @dataclass
@@ -300,7 +167,7 @@ class Service:
         self._store = Store.from_config(config, checkpoint=self._stepped)
         self._moved_out_at = float("-inf")
         self._started_at = utc_now()
-        self._status_written: tuple[tuple[int, ...], float] = ((), float("-inf"))
+        self._status_written: tuple[object, float] = ((), float("-inf"))
         """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
         self._workers = config.worker_count()
         self._tracker = StabilityTracker(
@@ -323,6 +190,21 @@ class Service:
         self._pool_broken = False
         self._counts = _Counts()
         self._fleet: FleetStore | None = None
+        self._health = Health()
+        self._waiting: deque[_Waiting] = deque()
+        self._retake: dict[str, Fault] = {}
+        """Inbox entries that could not be taken (or rejected) because of a fault."""
+        self._store_fault: Fault | None = None
+        """The map store's files lag its database, or it could not be used (a fault)."""
+        self._folders = {
+            "inbox": config.inbox,
+            "outbox": config.outbox,
+            "archive": config.archive,
+            "failed": config.failed,
+        }
+        if config.maps is not None:
+            self._folders["maps"] = config.maps
+        self._retention = Retention(config.retention, self._folders, keep=self._under_review)
         self._stopping = False
         self._abort = False
         self.ready = threading.Event()
@@ -338,6 +220,13 @@ class Service:
     @property
     def stopping(self) -> bool:
         return self._stopping
+
+    @property
+    def health(self) -> Health:
+        """Whether the daemon is degraded (``health.degraded``), by which faults
+        (``health.faults``: folder, path, reason, free bytes), since when and how many bundles
+        wait: for the metrics. Read-only; the main loop keeps it."""
+        return self._health
 
     def request_stop(self) -> None:
         """Stop taking bundles, finish the ones in hand, return from :meth:`run`. A second call
@@ -392,8 +281,10 @@ class Service:
             # Refuses to start on a damaged or missing database, saying how to recover.
             from mapserver.fleet.store import FleetStore
 
-            self._fleet = FleetStore(config.maps, config.update, checkpoint=self._checkpoint)
-            self._fleet.sync()
+            self._fleet = FleetStore(
+                config.maps, config.update, checkpoint=self._checkpoint, busy_timeout_s=2.0
+            )
+            self._sync_store()
         now = time.monotonic()
         recovered = self._store.recover()
         self._queue.extend(_Job(bundle_id, now) for bundle_id in recovered)
@@ -430,7 +321,7 @@ class Service:
             "next start)",
             self._counts.results,
             self._counts.failed,
-            len(self._queue),
+            len(self._queue) + len(self._waiting),  # those that waited for a fault too
         )
         return code
 
@@ -449,15 +340,19 @@ class Service:
             # anything else here runs (publishing, hashing new uploads).
             self._collect()
             self._enforce_limits()
+            if self._health.due():
+                self._retry_waiting()
             # Bounded, so that a large backlog (checksums to hash) keeps neither the watchdog nor
             # the workers waiting: what is taken goes out below, the rest is looked at on the
             # next turn, a moment later.
             for decision in self._tracker.poll(budget_s=min(_POLL_TURN_S, self._ping_every)):
                 _guarded(decision.name, self._take, decision)
             self._dispatch()
-            if self._fleet is not None and not self._running and not self._queue:
+            if self._fleet is not None and not (self._running or self._queue or self._waiting):
                 # Idle: fold waiting evidence into its counters, a few tiles a turn.
-                _guarded("fleet", self._fleet.fold_evidence)
+                _guarded("fleet", self._fold_evidence)
+            self._health.update(self._faults(), self._waiting_count())
+            _guarded("retention", self._retention.step)  # a few entries a turn, hourly
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
@@ -477,6 +372,9 @@ class Service:
         deadline = self._tracker.next_deadline()
         if deadline is not None:
             timeout = min(timeout, deadline - now)
+        retry = self._health.seconds_to_retry()
+        if retry is not None:
+            timeout = min(timeout, retry)
         if self._running and self._board is not None:
             for activity in self._board.activities():
                 timeout = min(timeout, activity.started + self._timeout_s - now)
@@ -531,11 +429,17 @@ class Service:
                 return
             self._store.claim(name, bundle_id)
         except FileNotFoundError:
+            self._retake.pop(name, None)
             log.warning("%s: left the inbox before it was taken", name)
             return
         except OSError as error:
+            if is_transient(error):  # it stays in the inbox, looked at again after a pause
+                self._retake[name] = fault_of(error, self._folders, "inbox")
+                log.info("%s: cannot take it now (%s); it stays in the inbox", name, error)
+                return
             log.error("%s: cannot take it from the inbox: %s", name, error)
             return
+        self._retake.pop(name, None)
         if bundle_id != name:
             log.info("%s: id already in use, taken as %s", name, bundle_id)
         log.info("%s: upload %.1f ms", bundle_id, decision.waited_s * 1000.0)
@@ -543,6 +447,7 @@ class Service:
 
     def _reject(self, name: str, bundle_id: str, stage: str, reason: str) -> None:
         path = self._store.reject(name, bundle_id, stage, reason)
+        self._retake.pop(name, None)
         self._counts.failed += 1
         log.warning("%s: done: failed at stage %s: %s -> %s", bundle_id, stage, reason, path)
 
@@ -566,7 +471,7 @@ class Service:
         return ProcessPoolExecutor(
             max_workers=self._workers,
             mp_context=context,
-            initializer=_init_worker,
+            initializer=init_worker,
             initargs=(
                 self._worker_setup,
                 os.getpid(),
@@ -582,7 +487,7 @@ class Service:
         first use and is replaced then."""
         assert self._pool is not None
         for _ in range(self._workers):
-            self._pool.submit(_noop)
+            self._pool.submit(noop)
 
     def _replace_pool(self) -> None:
         if self._pool is not None:
@@ -595,7 +500,8 @@ class Service:
         self._pool_broken = False
 
     def _dispatch(self) -> None:
-        if self._stopping:
+        # While finished bundles wait for a fault to clear, more results would only wait too.
+        if self._stopping or self._waiting:
             return
         while self._queue and len(self._running) < self._workers:
             if any(job.alone for job in self._running.values()):
@@ -723,11 +629,17 @@ class Service:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(activity.pid, signal.SIGKILL)
 
-    def _finish(self, job: _Job, done: WorkDone) -> None:
+    def _finish(self, job: _Job, done: WorkDone, *, retry: bool = False) -> None:
+        """Apply a finished bundle to the map store, publish its result, archive it (or fail
+        it). A fault of the server's folders or store makes it wait (:meth:`_hold`); ``retry``
+        is the attempt after one."""
         bundle_id = job.bundle_id
         outcome = done.outcome
         if outcome is None:
-            self._fail(job, done.stage, done.reason)
+            self._fail(job, done.stage, done.reason, retry=retry)
+            return
+        if self._waiting and not retry:  # behind the ones that wait already
+            self._hold(job, self._waiting[-1].fault, done=done)
             return
         if outcome.bundle_id != bundle_id:
             reason = f"internal error: the result is for bundle {outcome.bundle_id!r}"
@@ -735,24 +647,38 @@ class Service:
             return
         if outcome.observation is not None and self._fleet is not None:
             try:
+                # Once per bundle (a fingerprint): a retry after a fault re-applies as a no-op.
                 update = self._fleet.apply(outcome.observation)
             except Exception as error:  # a damaged database, a full disk under it
+                if is_transient(error):
+                    self._hold(job, fault_of(error, self._folders, "maps"), done=done)
+                    return
                 log.exception("%s: cannot apply it to the fleet map", bundle_id)
                 self._fail(job, "update", f"cannot apply it to the fleet map: {error}")
                 return
+            self._note_store_files()
             update.annotate(outcome.result)
             log.info("%s: update %.1f ms: %s", bundle_id, update.seconds * 1000.0, update.summary())
         start = time.perf_counter()
-        try:
-            result_dir = self._store.publish(outcome)
-        except Exception as error:  # a full disk, or a result YAML cannot hold
-            self._fail(job, "write", f"cannot write the result: {error}")
-            return
+        result_dir = self._store.outbox / bundle_id
+        if not job.published:
+            try:
+                result_dir = self._store.publish(outcome)
+            except Exception as error:  # a full disk, or a result YAML cannot hold
+                if is_transient(error):
+                    self._hold(job, fault_of(error, self._folders, "outbox"), done=done)
+                    return
+                self._fail(job, "write", f"cannot write the result: {error}")
+                return
+            job.published = True
         published = time.perf_counter()
         log.info("%s: publish %.1f ms", bundle_id, (published - start) * 1000.0)
         try:
             self._store.archive(bundle_id)
         except OSError as error:
+            if is_transient(error):
+                self._hold(job, fault_of(error, self._folders, "archive"), done=done)
+                return
             log.error("%s: result written, but cannot archive the bundle: %s", bundle_id, error)
             return
         log.info("%s: archive %.1f ms", bundle_id, (time.perf_counter() - published) * 1000.0)
@@ -770,10 +696,17 @@ class Service:
             result_dir / RESULT,
         )
 
-    def _fail(self, job: _Job, stage: str, reason: str) -> None:
+    def _fail(self, job: _Job, stage: str, reason: str, *, retry: bool = False) -> None:
+        if self._waiting and not retry:
+            self._hold(job, self._waiting[-1].fault, failure=(stage, reason))
+            return
         try:
             path = self._store.fail(job.bundle_id, stage, reason)
         except OSError as error:
+            if is_transient(error):
+                fault = fault_of(error, self._folders, "failed")
+                self._hold(job, fault, failure=(stage, reason))
+                return
             log.error(
                 "%s: failed at stage %s (%s), and cannot move it to failed/: %s; it stays in hand "
                 "until the next start",
@@ -785,6 +718,99 @@ class Service:
             return
         self._counts.failed += 1
         log.warning("%s: done: failed at stage %s: %s -> %s", job.bundle_id, stage, reason, path)
+
+    # -- faults of the server's folders (mapserver.faults) ----------------------------------
+
+    def _hold(
+        self,
+        job: _Job,
+        fault: Fault,
+        *,
+        done: WorkDone | None = None,
+        failure: tuple[str, str] | None = None,
+    ) -> None:
+        """Keep a finished bundle until the fault goes; nothing of it is visible meanwhile."""
+        self._waiting.append(_Waiting(job, fault, done, failure))
+        if job.waits:  # said already; the health warning repeats once a minute
+            return
+        job.waits = True
+        log.info(
+            "%s: waits: %s %s: %s (the bundle stays in %s)",
+            job.bundle_id,
+            fault.folder,
+            fault.path,
+            fault.reason,
+            self._store.taken_path(job.bundle_id),
+        )
+
+    def _retry_waiting(self) -> None:
+        """One retry of what waits for a fault: the inbox entries not taken (looked at again),
+        the map store's files, then the finished bundles in order until one fails again."""
+        for name in list(self._retake):
+            self._tracker.touch(name)
+            if name not in self._tracker:  # gone from the inbox
+                del self._retake[name]
+        if self._store_fault is not None:
+            self._sync_store()
+        while self._waiting:
+            item = self._waiting.popleft()
+            before = len(self._waiting)
+            if item.done is not None:
+                retry = functools.partial(self._finish, retry=True)
+                _guarded(item.job.bundle_id, retry, item.job, item.done)
+            elif item.failure is not None:
+                retry = functools.partial(self._fail, retry=True)
+                _guarded(item.job.bundle_id, retry, item.job, *item.failure)
+            if len(self._waiting) > before:  # it waits again, first in line: try later
+                self._waiting.rotate(1)
+                break
+        self._health.retried()
+
+    def _sync_store(self) -> None:
+        """Write the map store's files from its database (at start, and to retry a publication
+        a fault stopped); a fault leaves the daemon degraded, not stopped."""
+        assert self._fleet is not None
+        try:
+            self._fleet.sync()
+        except Exception as error:
+            if not is_transient(error):
+                raise
+            self._store_fault = fault_of(error, self._folders, "maps")
+            return
+        self._store_fault = None
+
+    def _note_store_files(self) -> None:
+        """After a bundle was applied: whether the store's files could be written."""
+        assert self._fleet is not None
+        error = self._fleet.unwritten
+        self._store_fault = None if error is None else fault_of(error, self._folders, "maps")
+
+    def _fold_evidence(self) -> None:
+        assert self._fleet is not None
+        if self._store_fault is not None:
+            return
+        try:
+            self._fleet.fold_evidence()
+        except Exception as error:
+            if not is_transient(error):
+                raise
+            self._store_fault = fault_of(error, self._folders, "maps")
+
+    def _under_review(self) -> set[str]:
+        """Bundles whose files retention keeps: seen in a change not yet decided."""
+        return set() if self._fleet is None else self._fleet.bundles_under_review()
+
+    def _faults(self) -> list[Fault]:
+        faults = [item.fault for item in self._waiting]
+        faults += self._retake.values()
+        if self._store_fault is not None:
+            faults.append(self._store_fault)
+        return faults
+
+    def _waiting_count(self) -> int:
+        """Bundles that wait for a fault: finished ones, inbox entries not taken, and, while
+        finished ones wait, those taken and not started."""
+        return len(self._waiting) + len(self._retake) + (len(self._queue) if self._waiting else 0)
 
     def _finish_running(self) -> None:
         """Let the bundles in hand finish (bounded by ``stop_timeout``), then stop the pool."""
@@ -823,10 +849,11 @@ class Service:
     # -- systemd --------------------------------------------------------------------------
 
     def _status(self) -> str:
+        degraded = self._health.summary()
         return (
-            f"STATUS={len(self._tracker)} uploading, {len(self._queue)} queued, "
-            f"{len(self._running)} processing; {self._counts.results} results, "
-            f"{self._counts.failed} failed"
+            f"STATUS={degraded + '; ' if degraded else ''}{len(self._tracker)} uploading, "
+            f"{len(self._queue) + len(self._waiting)} queued, {len(self._running)} processing; "
+            f"{self._counts.results} results, {self._counts.failed} failed"
         )
 
     def _heartbeat(self) -> None:
@@ -848,13 +875,14 @@ class Service:
         every 30 s (its age tells a hung daemon)."""
         counts = (
             len(self._tracker),
-            len(self._queue),
+            len(self._queue) + len(self._waiting),
             len(self._running),
             self._counts.results,
             self._counts.failed,
         )
         now = time.monotonic()
-        if counts == self._status_written[0] and now - self._status_written[1] < 30.0:
+        state = (counts, self._health.faults, self._health.waiting)
+        if state == self._status_written[0] and now - self._status_written[1] < 30.0:
             return
         document = {
             "format": 1,
@@ -866,13 +894,14 @@ class Service:
             "processing": counts[2],
             "results": counts[3],
             "failed": counts[4],
+            "degraded": self._health.document(),
         }
         try:
             write_status(self._config.inbox, document)
         except OSError as error:  # never worth stopping for
             log.debug("cannot write the status file: %s", error)
             return
-        self._status_written = (counts, now)
+        self._status_written = (state, now)
 
     # -- the observer ------------------------------------------------------------------------
 

@@ -9,6 +9,7 @@ so the report also works when no daemon runs.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import time
@@ -20,6 +21,7 @@ from typing import Any
 import yaml
 
 from mapserver.config import Config
+from mapserver.faults import format_size
 from mapserver.lock import daemon_pid
 from mapserver.outbox import ERROR, RESULT, TAKEN
 
@@ -31,19 +33,52 @@ _LISTED_FAILURES = 5
 
 def write_status(inbox: Path, document: dict[str, Any]) -> None:
     """Replace ``inbox/.mapserver.status`` with ``document`` (a reader never sees half of it).
-    Not fsynced: after a crash the lock, not this file, says whether a daemon runs."""
+    Not fsynced: after a crash the lock, not this file, says whether a daemon runs.
+
+    On a full disk (no block for a new file) the existing file is rewritten in place instead,
+    in the block it has: a full disk is what the status must then tell. A reader may catch
+    that write half done; :func:`read_status` reads again.
+    """
     path = inbox / STATUS_NAME
+    data = (yaml.safe_dump(document, sort_keys=False) + _END).encode("utf-8")
     partial = path.with_name(path.name + ".tmp")
-    partial.write_text(yaml.safe_dump(document, sort_keys=False), encoding="utf-8")
-    os.replace(partial, path)
+    try:
+        partial.write_bytes(data)
+        os.replace(partial, path)
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            partial.unlink()
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        fd = os.open(path, os.O_WRONLY)
+        try:
+            os.pwrite(fd, data, 0)
+            os.ftruncate(fd, len(data))
+        finally:
+            os.close(fd)
+
+
+# The status file's last line: a file read while rewritten in place lacks it.
+_END = "# end\n"
 
 
 def read_status(inbox: Path) -> dict[str, Any] | None:
-    try:
-        document = yaml.safe_load((inbox / STATUS_NAME).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
-        return None
-    return document if isinstance(document, dict) else None
+    for _ in range(5):
+        try:
+            text = (inbox / STATUS_NAME).read_text(encoding="utf-8")
+        except OSError:
+            return None
+        except UnicodeDecodeError:
+            text = ""
+        if text.endswith(_END):
+            try:
+                document = yaml.safe_load(text)
+            except yaml.YAMLError:
+                document = None
+            if isinstance(document, dict):
+                return document
+        time.sleep(0.02)  # caught while the daemon rewrote it in place
+    return None
 
 
 @dataclass(frozen=True)
@@ -76,6 +111,8 @@ class Report:
     failed_24h: int = 0
     failures: list[Failure] = field(default_factory=list)
     space: list[Space] = field(default_factory=list)
+    degraded: dict[str, Any] | None = None
+    """The running daemon's faults (its status file's ``degraded``); None when it has none."""
 
     @property
     def running(self) -> bool:
@@ -88,6 +125,7 @@ class Report:
         if self.running:
             since = (self.daemon or {}).get("started_at", "?")
             out.append(f"daemon:    running, pid {self.pid or 'unknown'}, since {since}")
+            out += _health_lines(self.degraded)
         else:
             out.append(f"daemon:    not running (no mapserver run holds {config.inbox})")
         queue = (
@@ -139,6 +177,8 @@ def report(config: Config, *, now: float | None = None, recent: bool = True) -> 
         out.uploading = int(daemon.get("uploading", 0))
         out.queued = int(daemon.get("queued", 0))
         out.processing = int(daemon.get("processing", 0))
+        degraded = daemon.get("degraded")
+        out.degraded = degraded if isinstance(degraded, dict) else None
     else:
         out.uploading = len(_visible(config.inbox))
         out.queued = len(_visible(config.inbox / TAKEN))
@@ -159,6 +199,25 @@ def report(config: Config, *, now: float | None = None, recent: bool = True) -> 
             out.space.append(Space(name, path, None, None, None))
             continue
         out.space.append(Space(name, path, usage.free, usage.total, device))
+    return out
+
+
+def _health_lines(degraded: dict[str, Any] | None) -> list[str]:
+    """``health: ok``, or ``health: DEGRADED ...`` with a line per fault."""
+    if degraded is None:
+        return ["health:    ok"]
+    waiting = degraded.get("waiting", 0)
+    out = [
+        f"health:    DEGRADED since {degraded.get('since', '?')}: {waiting} bundles wait (not "
+        "failed: they are done once the cause goes)"
+    ]
+    for fault in degraded.get("faults") or []:
+        free = fault.get("free_bytes")
+        space = f"{format_size(free)} free" if isinstance(free, int) else "free space unknown"
+        out.append(
+            f"  {fault.get('folder', '?')} {fault.get('path', '?')}: {fault.get('reason', '?')} "
+            f"({space})"
+        )
     return out
 
 

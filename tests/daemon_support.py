@@ -4,6 +4,7 @@ subprocess, waiting on conditions with a deadline, and the invariants every run 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import random
@@ -305,3 +306,43 @@ def scripted_process(bundle_dir: Path, config: Any, *, bundle_id: str) -> Any:
 def calls(root: Path) -> list[str]:
     path = root / "calls.log"
     return path.read_text().split() if path.exists() else []
+
+
+@contextlib.contextmanager
+def small_disk(path: Path, size: str = "8m") -> Iterator[Path]:
+    """A real, small filesystem (tmpfs) at ``path``, to fill up (ENOSPC) or remount read-only
+    (EROFS); the test is skipped, saying why, where none can be mounted (not root)."""
+    path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        pytest.skip("a real full disk needs a tmpfs, and mounting one needs root")
+    command = ["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "mapserver-test", str(path)]
+    mounted = subprocess.run(command, capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "--lazy", str(path)], check=False)
+
+
+def fill_disk(folder: Path) -> Path:
+    """Write ``folder/filler`` until the filesystem is full (not one more byte fits)."""
+    filler = folder / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        for size in (1 << 20, 1 << 16, 1 << 12, 1):
+            block = bytes(size)
+            while True:
+                try:
+                    os.write(fd, block)
+                except OSError as error:
+                    assert error.errno == errno.ENOSPC, error
+                    break
+    finally:
+        os.close(fd)
+    return filler
+
+
+def remount(path: Path, mode: str) -> None:
+    """``mode``: ro (every write fails with EROFS) or rw."""
+    subprocess.run(["mount", "-o", f"remount,{mode}", str(path)], check=True)

@@ -217,11 +217,12 @@ def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None
     assert running.returncode == 0, running.stderr
     lines = running.stdout.splitlines()
     assert lines[0].startswith(f"daemon:    running, pid {daemon.process.pid}, since 20")
-    assert lines[1].startswith("queue:     1 uploading, 0 queued, 0 processing (the daemon's ")
-    assert lines[2] == "last 24 h: 1 results, 1 failed"
-    assert lines[3].startswith("  failed bad at 20") and ", stage load: slam_map.pgm: " in lines[3]
-    assert lines[4] == "free space:"
-    for name, line in zip(["inbox", "outbox", "archive", "failed"], lines[5:], strict=True):
+    assert lines[1] == "health:    ok"
+    assert lines[2].startswith("queue:     1 uploading, 0 queued, 0 processing (the daemon's ")
+    assert lines[3] == "last 24 h: 1 results, 1 failed"
+    assert lines[4].startswith("  failed bad at 20") and ", stage load: slam_map.pgm: " in lines[4]
+    assert lines[5] == "free space:"
+    for name, line in zip(["inbox", "outbox", "archive", "failed"], lines[6:], strict=True):
         assert line.startswith(f"  {name:<8} {dirs[name]}") and " GiB free of " in line
 
     stopped = status()

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from mapserver.errors import StoreError
@@ -133,8 +133,11 @@ def _recovery(root: Path) -> str:
     )
 
 
-def connect(root: Path, *, create: bool, check: bool = True) -> sqlite3.Connection:
+def connect(
+    root: Path, *, create: bool, check: bool = True, timeout: float = 30.0
+) -> sqlite3.Connection:
     """Open (and with ``create``, make and migrate) the database of the store at ``root``.
+    ``timeout``: how long a write waits for another writer before "database is locked".
 
     Raises :class:`StoreError` with how to recover when the database is missing while the store
     holds maps, is not a database, fails its integrity check, or is newer than this program.
@@ -154,7 +157,7 @@ def connect(root: Path, *, create: bool, check: bool = True) -> sqlite3.Connecti
             )
         root.mkdir(parents=True, exist_ok=True)
     try:
-        conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+        conn = sqlite3.connect(path, isolation_level=None, timeout=timeout)
         conn.execute("PRAGMA foreign_keys = ON")
         conn.execute("PRAGMA synchronous = FULL")
         mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
@@ -211,6 +214,10 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
         yield conn
         conn.execute("COMMIT")  # may fail too (a full disk, an I/O error)
     except BaseException:
-        if conn.in_transaction:  # else every later BEGIN would fail until a restart
-            conn.execute("ROLLBACK")
+        # Left open, every later BEGIN would fail until a restart. SQLite has already rolled
+        # back after some errors (SQLITE_FULL, SQLITE_IOERR): a second ROLLBACK would raise and
+        # hide the error that matters.
+        if conn.in_transaction:
+            with suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
         raise

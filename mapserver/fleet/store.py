@@ -115,15 +115,20 @@ class FleetStore:
         create: bool = True,
         check: bool = True,
         checkpoint: Callable[[str], None] | None = None,
+        busy_timeout_s: float = 30.0,
     ):
         self.root = Path(root)
         # Test hook: called at named steps ("evidence-applied" inside the bundle's transaction,
         # "bundle-applied" after its commit, "version-written" before a version's commit).
         self._checkpoint = checkpoint or (lambda name: None)
         self.settings = settings or UpdateConfig()
-        self._conn = connect(self.root, create=create, check=check)
+        self._conn = connect(self.root, create=create, check=check, timeout=busy_timeout_s)
         with contextlib.suppress(OSError):  # a read-only store: its readers never take it
             (self.root / WRITER_LOCK).touch(exist_ok=True)
+        self.unwritten: OSError | None = None
+        """Why the store's files (versions, current.yaml, the keepout mask, changes.yaml) lag
+        its database: the error of the last write that failed (a full disk), None once they are
+        written again (:meth:`apply` or :meth:`sync`)."""
         self._states: dict[int, tuple[int, NDArray[np.uint8]]] = {}
         # changes.yaml is rewritten after every update: each change's YAML text is kept and
         # made again only when the change was touched (ids in _dirty).
@@ -543,6 +548,7 @@ class FleetStore:
                 ),
             )
         self._checkpoint("bundle-applied")
+        unwritten: OSError | None = None
         new_version = None
         published: list[int] = []
         warnings: list[str] = []
@@ -563,6 +569,8 @@ class FleetStore:
                         )
             except Exception as error:
                 published = []
+                if isinstance(error, OSError):
+                    unwritten = error
                 warnings.append(
                     f"map {obs.map_name}: cannot publish a new version now ({error}); the confirmed changes wait"
                 )
@@ -573,10 +581,13 @@ class FleetStore:
             with self._writer():
                 self._write_derived(obs.map_name)
         except Exception as error:
+            if isinstance(error, OSError):
+                unwritten = error
             warnings.append(f"map {obs.map_name}: cannot rewrite changes.yaml / keepout ({error})")
             log.error(
                 "%s: cannot write the files of map %s: %s", obs.bundle_id, obs.map_name, error
             )
+        self.unwritten = unwritten
         return Update(
             obs.map_name,
             obs.bundle_version,
@@ -591,6 +602,17 @@ class FleetStore:
             warnings=tuple(warnings),
             seconds=time.perf_counter() - start,
         )
+
+    def bundles_under_review(self) -> set[str]:
+        """The ids of the bundles a change not yet decided (pending or confirmed) was seen in:
+        the ones whose files (result, archived bundle) a person reviewing it may look at."""
+        return {
+            row[0]
+            for row in self._conn.execute(
+                "SELECT DISTINCT s.bundle_id FROM sightings s JOIN changes c "
+                "ON c.id = s.change_id WHERE c.state IN ('pending', 'confirmed')"
+            )
+        }
 
     def fold_evidence(self, *, max_tiles: int = 16) -> int:
         """Fold the pending evidence of up to ``max_tiles`` tiles into their counters (the
@@ -612,16 +634,20 @@ class FleetStore:
         """Bring the files in line with the database (after a crash between a commit and the
         files, or a publication that failed on a full disk): publish what auto mode has
         confirmed, then write current.yaml, the keepout mask and changes.yaml of every map."""
-        for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
-            map_id, lattice, yaw, _ = self._map(name)
-            with self._writer():
-                if self.settings.mode == "auto":
-                    ids = self._confirmed_ids(map_id)
-                    if ids:
-                        self._publish_changes(
-                            map_id, name, lattice, yaw, ids, note="confirmed earlier"
-                        )
-                self._write_derived(name, force=True)
+        try:
+            for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
+                map_id, lattice, yaw, _ = self._map(name)
+                with self._writer():
+                    if self.settings.mode == "auto":
+                        ids = self._confirmed_ids(map_id)
+                        if ids:
+                            note = "confirmed earlier"
+                            self._publish_changes(map_id, name, lattice, yaw, ids, note=note)
+                    self._write_derived(name, force=True)
+        except OSError as error:
+            self.unwritten = error
+            raise
+        self.unwritten = None
 
     # -- publishing -------------------------------------------------------------------------
 
