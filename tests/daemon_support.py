@@ -344,5 +344,16 @@ def fill_disk(folder: Path) -> Path:
 
 
 def remount(path: Path, mode: str) -> None:
-    """``mode``: ro (every write fails with EROFS) or rw."""
-    subprocess.run(["mount", "-o", f"remount,{mode}", str(path)], check=True)
+    """``mode``: ro (every write fails with EROFS) or rw. A remount to ro fails while a file is
+    open for writing (the daemon rewriting its status file that very moment): tried again for
+    up to 5 s."""
+    deadline = time.monotonic() + 5.0
+    while True:
+        done = subprocess.run(
+            ["mount", "-o", f"remount,{mode}", str(path)], capture_output=True, text=True
+        )
+        if done.returncode == 0:
+            return
+        if "busy" not in done.stderr or time.monotonic() > deadline:
+            raise AssertionError(f"remount {mode} failed: {done.stderr}")
+        time.sleep(0.05)
