@@ -81,6 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"maps add: {time.perf_counter() - start:.2f} s (5000 x 3000 cells)")
         t0 = datetime(2026, 11, 21, 6, 0, tzinfo=timezone.utc)
         updates, publishes, rss, tiles = [], [], [], []
+        published_by: list[int | None] = []
         real_publish = store._publish_state
 
         def timed_publish(*a: object, **kw: object) -> int:
@@ -107,6 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             t = time.perf_counter()
             update = store.apply(outcome.observation)
             updates.append((time.perf_counter() - t) * 1000.0)
+            published_by.append(update.new_version)
             rss.append(_rss_mib())
             print(
                 f"  {bundle.name} {stamp}: update {updates[-1]:6.1f} ms, {tiles[-1]:3d} tiles, "
@@ -118,10 +120,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         db_mib = sum(p.stat().st_size for p in (work / "maps").glob("store.db*")) / 2**20
         u = np.array(updates)
         # Without the bundles that published a version (their time is the publication's).
-        plain = np.array([ms for ms, n in zip(updates, range(len(updates)), strict=True)])
+        plain = np.array([ms for ms, v in zip(updates, published_by, strict=True) if v is None])
         print(
-            f"update step per bundle: median {np.median(plain):.1f} ms, p90 "
-            f"{np.percentile(u, 90):.1f} ms, max {u.max():.1f} ms (target <= {TARGET_UPDATE_MS:g} "
+            f"update step per bundle (the {len(plain)} that published no version): median "
+            f"{np.median(plain):.1f} ms, p90 {np.percentile(plain, 90):.1f} ms, max "
+            f"{plain.max():.1f} ms; all {len(u)}: p90 {np.percentile(u, 90):.1f} ms, max "
+            f"{u.max():.1f} ms (target <= {TARGET_UPDATE_MS:g} "
             f"ms: {'PASS' if np.median(plain) <= TARGET_UPDATE_MS else 'FAIL'}); tiles touched "
             f"median {int(np.median(tiles))}"
         )
