@@ -20,6 +20,7 @@ import logging
 import os
 import stat
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,9 @@ from watchdog.events import (
     FileSystemEvent,
     FileSystemEventHandler,
 )
+from watchdog.observers import Observer
+from watchdog.observers.api import BaseObserver
+from watchdog.observers.polling import PollingObserver
 
 from mapserver.bundle import (
     MANIFEST,
@@ -47,7 +51,7 @@ from mapserver.bundle import (
     is_valid_bundle_id,
     nested_bundles_hint,
 )
-from mapserver.config import LimitsConfig
+from mapserver.config import Config, LimitsConfig
 from mapserver.errors import BundleError, BundleIncomplete, ChecksumMismatch
 
 log = logging.getLogger(__name__)
@@ -363,3 +367,42 @@ class StabilityTracker:
             entry.mismatch = False
             return False
         return True
+
+
+def start_observer(config: Config, handler: InboxHandler) -> BaseObserver:
+    """Watch ``config.inbox`` (and everything under it) with inotify, or by polling when
+    ``observer: polling`` or inotify is not to be had; started."""
+    # A bundle moved back into the inbox (a failed one, to be tried again) still carries the
+    # inotify watch it had before it left: watchdog keeps the watches of directories moved
+    # out of its tree, finds that one again and warns that it "will be Overwritten". It is
+    # harmless (the watch follows the directory to its new name), and a bare warning on
+    # stderr is not for an operator.
+    warnings.filterwarnings(
+        "ignore",
+        message=r"Callback with id .* already exists for watch",
+        category=RuntimeWarning,
+    )
+    kinds = ["native", "polling"] if config.observer == "native" else ["polling"]
+    for kind in kinds:
+        observer: BaseObserver
+        if kind == "polling":
+            observer = PollingObserver(timeout=min(1.0, max(0.1, config.settle_seconds / 2)))
+        else:
+            observer = Observer()
+        observer.schedule(handler, str(config.inbox), recursive=True, event_filter=EVENT_TYPES)
+        try:
+            observer.start()
+        except OSError as error:
+            if kind == "polling":
+                raise
+            log.warning("inbox: cannot watch with inotify (%s); polling instead", error)
+            continue
+        return observer
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def watch_afresh(observer: BaseObserver, handler: InboxHandler, inbox: Path) -> None:
+    """Drop every watch of ``observer`` and watch ``inbox`` again (the watches of directories
+    that left the tree go with them)."""
+    observer.unschedule_all()
+    observer.schedule(handler, str(inbox), recursive=True, event_filter=EVENT_TYPES)

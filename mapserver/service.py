@@ -20,7 +20,6 @@ import os
 import signal
 import threading
 import time
-import warnings
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -31,7 +30,6 @@ from queue import Empty, SimpleQueue
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
-from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
@@ -39,13 +37,14 @@ from mapserver.board import Board, resident_bytes
 from mapserver.config import Config, check_paths
 from mapserver.faults import Fault, Health, fault_of, is_transient
 from mapserver.inbox import (
-    EVENT_TYPES,
     Decision,
     InboxHandler,
     Rejected,
     StabilityTracker,
     check_entry,
     scan,
+    start_observer,
+    watch_afresh,
 )
 from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
@@ -86,6 +85,9 @@ except ImportError:  # watchdog < 7 (InotifyBuffer, the same half second), or no
 
 # How long one turn of the main loop may spend checking uploads.
 _POLL_TURN_S = 0.05
+# The inotify watches are set up afresh after this many bundles left the inbox (each left one
+# watch behind: see Service._rearm). $MAPSERVER_TEST_REARM_AFTER: a smaller number, for tests.
+_REARM_AFTER = int(os.environ.get("MAPSERVER_TEST_REARM_AFTER", "500"))
 
 
 def _broke(future: Future[WorkDone]) -> bool:
@@ -166,6 +168,9 @@ class Service:
         self._checkpoint = env_checkpoint()
         self._store = Store.from_config(config, checkpoint=self._stepped)
         self._moved_out_at = float("-inf")
+        self._moved_since_arm = 0
+        """Bundles moved out of the inbox's tree since the inotify watches were last set up."""
+        self._handler: InboxHandler | None = None
         self._started_at = utc_now()
         self._status_written: tuple[object, float] = ((), float("-inf"))
         """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
@@ -353,6 +358,8 @@ class Service:
                 _guarded("fleet", self._fold_evidence)
             self._health.update(self._faults(), self._waiting_count())
             _guarded("retention", self._retention.step)  # a few entries a turn, hourly
+            if self._moved_since_arm >= _REARM_AFTER:
+                _guarded("inbox", self._rearm, observer)
             if not _observer_alive(observer):
                 log.error("inbox: the observer stopped watching %s; exiting", self._config.inbox)
                 return 1
@@ -909,7 +916,24 @@ class Service:
         """The store's checkpoint: note moves out of the inbox, then the test hook."""
         if step in ("archived", "failed-moved"):
             self._moved_out_at = time.monotonic()
+            self._moved_since_arm += 1
         self._checkpoint(step)
+
+    def _rearm(self, observer: BaseObserver) -> None:
+        """Set the inotify watches up afresh. watchdog never drops the watch of a directory
+        moved out of its tree: each archived bundle kept one, and a daemon running for months
+        would reach the kernel's limit (fs.inotify.max_user_watches) and stop seeing uploads.
+        Done between bundles' moves (no event of a move is lost half-paired); the rescan right
+        after catches anything that arrived meanwhile."""
+        if isinstance(observer, PollingObserver) or self._handler is None:
+            self._moved_since_arm = 0  # polling holds no watches
+            return
+        if time.monotonic() - self._moved_out_at < _INOTIFY_MOVE_DELAY_S + 0.1:
+            return  # a move out may still be waiting for its pair: next turn
+        watch_afresh(observer, self._handler, self._config.inbox)
+        log.info("inbox: watches set up afresh after %d bundles left it", self._moved_since_arm)
+        self._moved_since_arm = 0
+        self._rescan()
 
     def _let_the_observer_pair_its_moves(self, observer: BaseObserver) -> None:
         """Wait, before stopping the inotify observer, until it has let go of the last bundle
@@ -928,35 +952,8 @@ class Service:
             time.sleep(wait_s)
 
     def _start_observer(self) -> BaseObserver:
-        config = self._config
-        handler = InboxHandler(config.inbox, self._hints)
-        # A bundle moved back into the inbox (a failed one, to be tried again) still carries the
-        # inotify watch it had before it left: watchdog keeps the watches of directories moved
-        # out of its tree, finds that one again and warns that it "will be Overwritten". It is
-        # harmless (the watch follows the directory to its new name), and a bare warning on
-        # stderr is not for an operator.
-        warnings.filterwarnings(
-            "ignore",
-            message=r"Callback with id .* already exists for watch",
-            category=RuntimeWarning,
-        )
-        kinds = ["native", "polling"] if config.observer == "native" else ["polling"]
-        for kind in kinds:
-            observer: BaseObserver
-            if kind == "polling":
-                observer = PollingObserver(timeout=min(1.0, max(0.1, config.settle_seconds / 2)))
-            else:
-                observer = Observer()
-            observer.schedule(handler, str(config.inbox), recursive=True, event_filter=EVENT_TYPES)
-            try:
-                observer.start()
-            except OSError as error:
-                if kind == "polling":
-                    raise
-                log.warning("inbox: cannot watch with inotify (%s); polling instead", error)
-                continue
-            return observer
-        raise AssertionError("unreachable")  # pragma: no cover
+        self._handler = InboxHandler(self._config.inbox, self._hints)
+        return start_observer(self._config, self._handler)
 
 
 def _guarded(bundle_id: str, handle: Callable[..., object], *args: Any) -> None:
