@@ -221,3 +221,41 @@ def test_a_session_cookie_expires_and_cannot_be_reused_with_another_name() -> No
     forged = cookie.replace(".alice.", ".mallory.")
     assert security.read_session(TOKEN, forged, now=1_000_000) is None
     assert security.read_session("another-token-0123456789", cookie, now=1_000_000) is None
+
+
+def test_a_degraded_daemon_shows_on_the_dashboard_and_in_the_metrics(tmp_path: Path) -> None:
+    from mapserver.lock import daemon_lock
+    from mapserver.status import write_status
+
+    config = build_site(tmp_path / "site")
+    with daemon_lock(config):  # as a running daemon holds it
+        write_status(
+            config.inbox,
+            {
+                "pid": os.getpid(),
+                "started_at": "2026-11-25T01:00:00Z",
+                "updated_at": "2026-11-25T01:00:05Z",
+                "uploading": 0,
+                "queued": 0,
+                "processing": 0,
+                "degraded": {
+                    "since": "2026-11-25T01:00:00Z",
+                    "waiting": 2,
+                    "faults": [
+                        {
+                            "folder": "outbox",
+                            "path": str(config.outbox),
+                            "reason": "No space left on device",
+                            "free_bytes": 0,
+                        }
+                    ],
+                },
+            },
+        )
+        c = client(config)
+        html = c.get("/").text
+        assert "DEGRADED since 2026-11-25T01:00:00Z: 2 bundles wait" in html
+        assert "No space left on device (0.0 MiB free)" in html
+        families = {f.name: f for f in text_string_to_metric_families(c.get("/metrics").text)}
+        assert families["mapserver_degraded"].samples[0].value == 1
+        assert c.get("/healthz").json()["degraded"] is True

@@ -360,7 +360,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
             status="ok",
             version=__version__,
             daemon_running=r.running,
-            degraded=bool((r.daemon or {}).get("degraded")),
+            degraded=r.degraded is not None,
             results_indexed=len(index),
         )
 
@@ -543,7 +543,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
             maps=maps,
             recent=index.results(10),
             failures=index.failures(5),
-            degraded=(r.daemon or {}).get("degraded"),
+            degraded=r.degraded,
         )
 
     @app.get("/bundles", response_class=HTMLResponse, include_in_schema=False)

@@ -111,7 +111,7 @@ class MapserverCollector(Collector):
         degraded = GaugeMetricFamily(
             "mapserver_degraded", "1 when the daemon reports itself degraded (a full disk, ...)."
         )
-        degraded.add_metric([], 1.0 if (report.daemon or {}).get("degraded") else 0.0)
+        degraded.add_metric([], 1.0 if report.degraded is not None else 0.0)
         yield degraded
         free = GaugeMetricFamily(
             "mapserver_free_bytes", "Free space of each folder.", labels=["folder"]
