@@ -10,6 +10,7 @@ the command line.
 
 # No "from __future__ import annotations": FastAPI reads the endpoints' annotations at run time,
 # and some name dependencies defined inside create_app.
+import dataclasses
 import hashlib
 import logging
 import threading
@@ -35,7 +36,7 @@ from mapserver.fleet.model import STATES, ChangeInfo
 from mapserver.maps import load_map
 from mapserver.status import Report, report
 from mapserver.web import pictures, security
-from mapserver.web.index import BundleIndex, FailureRow, ResultRow, cursor, parse_cursor, read_yaml
+from mapserver.web.index import BundleIndex, ResultRow, cursor, parse_cursor, read_yaml
 from mapserver.web.metrics import MapserverCollector
 
 log = logging.getLogger(__name__)
@@ -133,22 +134,7 @@ class ChangeOut(BaseModel):
 
     @staticmethod
     def of(c: ChangeInfo, history: list[dict[str, str]] | None = None) -> "ChangeOut":
-        return ChangeOut(
-            id=c.id,
-            map=c.map,
-            kind=c.kind,
-            state=c.state,
-            polygon=c.polygon,
-            first_seen=c.first_seen,
-            last_seen=c.last_seen,
-            sessions=c.sessions,
-            contradicted=c.contradicted,
-            robots=c.robots,
-            bundles=c.bundles,
-            version=c.version,
-            note=c.note,
-            history=history,
-        )
+        return ChangeOut.model_validate({**dataclasses.asdict(c), "history": history})
 
 
 class ChangePage(BaseModel):
@@ -212,6 +198,12 @@ class _Pictures:
             while len(self._items) > self.capacity:
                 self._items.popitem(last=False)
         return value
+
+
+def _page(rows: list[Any], limit: int) -> tuple[list[Any], str | None]:
+    """The first ``limit`` of ``limit + 1`` rows fetched, and the cursor of the next page (None
+    when there is none)."""
+    return rows[:limit], (cursor(rows[limit - 1].key) if len(rows) > limit else None)
 
 
 def _when(stamp: str) -> str:
@@ -400,12 +392,8 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def api_bundles(
         before: str | None = None, limit: Annotated[int, Query(ge=1, le=1000)] = page_size
     ) -> BundlePage:
-        rows = index.results(limit + 1, parse_cursor(before))
-        more = len(rows) > limit
-        rows = rows[:limit]
-        return BundlePage(
-            items=[BundleOut.of(r) for r in rows], next=cursor(rows[-1].key) if more else None
-        )
+        rows, nxt = _page(index.results(limit + 1, parse_cursor(before)), limit)
+        return BundlePage(items=[BundleOut.of(r) for r in rows], next=nxt)
 
     @app.get("/api/bundles/{bundle_id}", tags=["bundles"])
     def api_bundle(bundle_id: str) -> dict[str, Any]:
@@ -419,9 +407,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def api_failures(
         before: str | None = None, limit: Annotated[int, Query(ge=1, le=1000)] = page_size
     ) -> FailurePage:
-        rows = index.failures(limit + 1, parse_cursor(before))
-        more = len(rows) > limit
-        rows = rows[:limit]
+        rows, nxt = _page(index.failures(limit + 1, parse_cursor(before)), limit)
         return FailurePage(
             items=[
                 FailureOut(
@@ -429,7 +415,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
                 )
                 for r in rows
             ],
-            next=cursor(rows[-1].key) if more else None,
+            next=nxt,
         )
 
     # -- API: maps, versions, changes ----------------------------------------------------------
@@ -548,12 +534,8 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     @app.get("/bundles", response_class=HTMLResponse, include_in_schema=False)
     def bundles(request: Request, before: str | None = None) -> HTMLResponse:
-        rows = index.results(page_size + 1, parse_cursor(before))
-        more = len(rows) > page_size
-        rows = rows[:page_size]
-        return render(
-            request, "bundles.html", rows=rows, next=cursor(rows[-1].key) if more else None
-        )
+        rows, nxt = _page(index.results(page_size + 1, parse_cursor(before)), page_size)
+        return render(request, "bundles.html", rows=rows, next=nxt)
 
     @app.get("/bundles/{bundle_id}", response_class=HTMLResponse, include_in_schema=False)
     def bundle(request: Request, bundle_id: str) -> HTMLResponse:
@@ -584,12 +566,8 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     @app.get("/failed", response_class=HTMLResponse, include_in_schema=False)
     def failed_page(request: Request, before: str | None = None) -> HTMLResponse:
-        rows: list[FailureRow] = index.failures(page_size + 1, parse_cursor(before))
-        more = len(rows) > page_size
-        rows = rows[:page_size]
-        return render(
-            request, "failed.html", rows=rows, next=cursor(rows[-1].key) if more else None
-        )
+        rows, nxt = _page(index.failures(page_size + 1, parse_cursor(before)), page_size)
+        return render(request, "failed.html", rows=rows, next=nxt)
 
     @app.get("/maps", response_class=HTMLResponse, include_in_schema=False)
     def maps_page(request: Request) -> HTMLResponse:
