@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from mapserver import align as align_stage
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
-from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
 
@@ -239,6 +239,81 @@ def compose(
     return state, left_out
 
 
+def unfit_tiles(
+    local_state: NDArray[np.uint8],
+    global_walls: NDArray[np.bool_],
+    *,
+    resolution: float,
+    tile_m: float = 6.0,
+    reach_m: float = 0.5,
+    max_share: float = 0.5,
+    max_share_around: float = 0.8,
+    min_wall_m: float = 6.0,
+    tile_offset_px: tuple[int, int] = (0, 0),
+) -> NDArray[np.bool_]:
+    """The tiles of an aligned local map that the alignment does not put on the global map.
+
+    One rigid fit (plus the drift warp) can score well over a local map bent beyond the warp's
+    reach: the part that fits carries the score, the rest lands off the building and would be
+    reported as changes. Each tile of ``tile_m`` (a lattice fixed by ``tile_offset_px``, as in
+    :func:`mapserver.diff.misfit_tolerance`) with ``min_wall_m`` of local wall or more measures
+    two shares: its local walls within ``reach_m`` of a global wall (the differences' largest
+    misfit tolerance), and its global walls (where the local map is known) that the local map
+    does not see through (free, no local wall within ``reach_m``). A tile is unfit when both are
+    under ``max_share`` and, over the tile and its eight neighbours, the second is under
+    ``max_share_around``: a new obstacle beside a removed wall can fail one tile, but a
+    misaligned region runs global walls through space seen free all around it.
+
+    ``local_state`` (uint8 states) and ``global_walls`` (bool) are (H, W) on one grid, ``[row,
+    col]``. Returns (H, W) bool: the cells of unfit tiles (all false when every tile fits).
+    """
+    if resolution <= 0:
+        raise ValueError(f"resolution must be > 0, got {resolution}")
+    h, w = local_state.shape
+    unfit = np.zeros((h, w), bool)
+    local_walls = local_state == OCCUPIED
+    if not local_walls.any() or not global_walls.any():
+        return unfit
+    k = math.ceil(reach_m / resolution)
+    # A square reach, not a disk: a statistic over metres of wall, and a square dilation is
+    # separable (several times cheaper on the trusted path, where every bundle pays it).
+    disk = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * k + 1, 2 * k + 1))
+    near_global = cv2.dilate(global_walls.view(np.uint8), disk).view(bool)
+    near_local = cv2.dilate(local_walls.view(np.uint8), disk).view(bool)
+    seen = global_walls & (local_state != UNKNOWN)
+    seen_through = seen & (local_state == FREE) & ~near_local
+    tile = max(1, round(tile_m / resolution))
+    # Pad to whole tiles of the lattice (and one empty tile around, for the neighbours).
+    r_lo, c_lo = tile_offset_px[0] % tile + tile, tile_offset_px[1] % tile + tile
+    n_i, n_j = -(-(h + r_lo) // tile) + 1, -(-(w + c_lo) // tile) + 1
+
+    def per_tile(mask: NDArray[np.bool_]) -> NDArray[np.int64]:
+        padded = np.zeros((n_i * tile, n_j * tile), bool)
+        padded[r_lo : r_lo + h, c_lo : c_lo + w] = mask
+        return np.asarray(padded.reshape(n_i, tile, n_j, tile).sum(axis=(1, 3)), np.int64)
+
+    def around(counts: NDArray[np.int64]) -> NDArray[np.int64]:
+        p = np.pad(counts, 1)
+        out = np.zeros_like(counts)
+        for di in (0, 1, 2):
+            for dj in (0, 1, 2):
+                out += p[di : di + n_i, dj : dj + n_j]
+        return out
+
+    walls, fitting = per_tile(local_walls), per_tile(local_walls & near_global)
+    seen_n, through = per_tile(seen), per_tile(seen_through)
+    bad = (
+        (walls >= min_wall_m / resolution)
+        & (fitting < max_share * walls)
+        & (seen_n - through < max_share * seen_n)
+        & (around(seen_n) - around(through) < max_share_around * around(seen_n))
+    )
+    for i, j in zip(*np.nonzero(bad), strict=True):
+        r, c = i * tile - r_lo, j * tile - c_lo
+        unfit[max(r, 0) : max(r + tile, 0), max(c, 0) : max(c + tile, 0)] = True
+    return unfit
+
+
 def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
     """The one rigid transform closest to the trusted pieces' (least squares over their known
     cells, a sample of each weighted by its area): what ``result.yaml`` reports as the
@@ -266,4 +341,13 @@ def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
     )
 
 
-__all__ = ["Piece", "Pieces", "align_pieces", "compose", "fit_rigid", "label_cells", "route_pieces"]
+__all__ = [
+    "Piece",
+    "Pieces",
+    "align_pieces",
+    "compose",
+    "fit_rigid",
+    "label_cells",
+    "route_pieces",
+    "unfit_tiles",
+]

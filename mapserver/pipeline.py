@@ -214,12 +214,15 @@ def _align_in_pieces(
     view: align_stage.GlobalView,
     alignment: align_stage.Alignment,
     config: Config,
+    *,
+    bent: bool = False,
 ) -> piecewise.Pieces | None:
     """The local map aligned in pieces along the route, when no rigid transform is trusted for
-    the whole of it and the route is long enough for two pieces (else None)."""
+    the whole of it (or the trusted one leaves a region off the building: ``bent``) and the
+    route is long enough for two pieces (else None)."""
     a = config.pipeline.align
     poses = files.manifest.trajectory_poses()
-    if alignment.trusted or not a.pieces or not a.refine or len(poses) < 2:
+    if (alignment.trusted and not bent) or not a.pieces or not a.refine or len(poses) < 2:
         return None
     route = np.array([[p.x, p.y] for p in poses])
     if float(np.hypot(*np.diff(route, axis=0).T).sum()) < 1.5 * a.piece_m:
@@ -296,6 +299,23 @@ def _make_roi(
         return roi.observed(local_state, grid)
     # Unknown cells never differ anyway; intersecting keeps the mask honest for the images.
     return roi.Roi(region.strategy, region.mask & (local_state != UNKNOWN), region.polygon)
+
+
+def _unfit(local_state: np.ndarray, view: align_stage.GlobalView, reach_m: float) -> np.ndarray:
+    """The tiles of the aligned local map (on ``view``'s grid) whose walls do not lie on the
+    global walls: beyond the differences' largest misfit tolerance, they would all be changes."""
+    grid = view.grid
+    return piecewise.unfit_tiles(
+        local_state,
+        view.structure,
+        resolution=grid.resolution,
+        reach_m=reach_m,
+        # A lattice fixed in the nav2 frame, whatever part of the map the work grid covers.
+        tile_offset_px=(
+            -round((grid.y0 + grid.height * grid.resolution) / grid.resolution),
+            round(grid.x0 / grid.resolution),
+        ),
+    )
 
 
 def _drift_passes(tile_m: float, max_shift_m: float, passes: int) -> list[tuple[float, float]]:
@@ -539,30 +559,21 @@ def process_bundle(
     warnings += alignment.warnings
     transform = alignment.nav2_from_slam
     grid = view.grid
+    search_view = view
     pieces = None
     if not alignment.trusted and settings.align.pieces:
         pieces = stages.run(
-            "pieces", lambda: _align_in_pieces(files, local, view, alignment, config)
-        )
-    in_pieces = pieces is not None and bool(pieces.trusted)
-    compared = alignment.trusted or in_pieces
-    left_out = None
-    if pieces is not None and in_pieces:
-        transform = piecewise.fit_rigid(local, pieces) or transform
-        warnings[:] = [w for w in warnings if w not in alignment.warnings]
-        warnings.append(
-            f"the local map was aligned in {len(pieces.pieces)} pieces along the route, "
-            f"{len(pieces.trusted)} trusted: {pieces.trusted_share:.0%} of the observed area "
-            f"({pieces.trusted_area_m2:.0f} m2) compared, the rest left out"
+            "pieces", lambda: _align_in_pieces(files, local, search_view, alignment, config)
         )
 
     def _warp_pieces() -> tuple[align_stage.GlobalView, np.ndarray, np.ndarray]:
         assert pieces is not None
+        grid = search_view.grid
 
         def warp_piece(part: OccupancyMap, t: Transform2D) -> np.ndarray:
             drift = None
             if settings.align.deform:
-                drift = _estimate_drift(part, t, view, config, reach_m=drift_reach_m)
+                drift = _estimate_drift(part, t, search_view, config, reach_m=drift_reach_m)
             return deform.warp_local(part, grid, t, drift)
 
         state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
@@ -575,33 +586,73 @@ def process_bundle(
             min(x + w + m, grid.width),
         )
         r0, r1, c0, c1 = box
-        return view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1]
+        return search_view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1]
 
     def _warp() -> tuple[align_stage.GlobalView, np.ndarray, float]:
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
-            drift = _estimate_drift(local, transform, view, config, reach_m=drift_reach_m)
+            drift = _estimate_drift(local, transform, search_view, config, reach_m=drift_reach_m)
         # From here on, only where the local map lands matters (with room for the tolerances and
         # the images' margin): the search view around it is several times larger.
         drift_m = drift.max_shift_m() if drift is not None else 0.0
         box = landing_box(
             local,
-            view.grid,
+            search_view.grid,
             transform,
-            margin_px=(drift_m + margin_m) / view.grid.resolution,
+            margin_px=(drift_m + margin_m) / search_view.grid.resolution,
             step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
         )
-        work = view.cropped(box) if box is not None else view
+        work = search_view.cropped(box) if box is not None else search_view
         return work, deform.warp_local(local, work.grid, transform, drift), drift_m
 
+    def _fit() -> np.ndarray:
+        return _unfit(local_state, view, settings.diff.max_misfit_tolerance_m)
+
+    in_pieces = pieces is not None and bool(pieces.trusted)
+    left_out: np.ndarray | None = None
+    drift_m = 0.0
     if in_pieces:
         view, local_state, left_out = stages.run("warp", _warp_pieces)
-        drift_m = 0.0
     else:
         view, local_state, drift_m = stages.run("warp", _warp)
+    compared = alignment.trusted or in_pieces
+    unfit = stages.run("fit", _fit) if compared else None
+    if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
+        # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
+        # correction. Aligned in pieces, each region fits on its own or is left out.
+        pieces = stages.run(
+            "pieces",
+            lambda: _align_in_pieces(files, local, search_view, alignment, config, bent=True),
+        )
+        if pieces is not None and pieces.trusted:
+            in_pieces = True
+            view, local_state, left_out = stages.run("warp", _warp_pieces)
+            drift_m = 0.0
+            unfit = stages.run("fit", _fit)
+    if pieces is not None and in_pieces:
+        transform = piecewise.fit_rigid(local, pieces) or transform
+        warnings[:] = [w for w in warnings if w not in alignment.warnings]
+        warnings.append(
+            f"the local map was aligned in {len(pieces.pieces)} pieces along the route, "
+            f"{len(pieces.trusted)} trusted: {pieces.trusted_share:.0%} of the observed area "
+            f"({pieces.trusted_area_m2:.0f} m2) compared, the rest left out"
+        )
     route_xy = _route_nav2(files, transform)  # the trajectory ROI and the overlay draw it
     grid = view.grid
+    kept = 1.0
+    if unfit is not None and unfit.any():
+        observed_m2 = float(np.count_nonzero(local_state != UNKNOWN)) * grid.resolution**2
+        cut = unfit & (local_state != UNKNOWN)
+        left_out = cut if left_out is None else left_out | cut
+        local_state = np.where(unfit, UNKNOWN, local_state).astype(np.uint8)
+        cut_m2 = float(np.count_nonzero(cut)) * grid.resolution**2
+        kept = 1.0 - cut_m2 / observed_m2 if observed_m2 > 0 else 0.0
+        compared = kept > 0.0
+        warnings.append(
+            f"{cut_m2:.0f} m2 of the local map ({1.0 - kept:.0%}) left out: its walls do not lie "
+            "on the global map's walls after alignment (a bend beyond the drift correction)"
+        )
     if drift_m > 0.1:
         log.info("%s: drift corrected, up to %.2f m", bundle_id, drift_m)
     region = stages.run(
@@ -636,8 +687,8 @@ def process_bundle(
     }
     if pieces is not None:
         alignment_doc["method"] = f"{alignment.method}+pieces"
-        alignment_doc["trusted_area_m2"] = round(pieces.trusted_area_m2, 1)
-        alignment_doc["trusted_share"] = round(pieces.trusted_share, 3)
+        alignment_doc["trusted_area_m2"] = round(pieces.trusted_area_m2 * kept, 1)
+        alignment_doc["trusted_share"] = round(pieces.trusted_share * kept, 3)
         alignment_doc["pieces"] = len(pieces.pieces)
         alignment_doc["trusted_pieces"] = len(pieces.trusted)
         if in_pieces:
@@ -647,6 +698,10 @@ def process_bundle(
             weights = [p.area_m2 for p in pieces.trusted]
             scores = [p.score for p in pieces.trusted]
             alignment_doc["score"] = round(float(np.average(scores, weights=weights)), 3)
+    elif kept < 1.0:
+        local_m2 = float(np.count_nonzero(local.state != UNKNOWN)) * local.resolution**2
+        alignment_doc["trusted_area_m2"] = round(local_m2 * kept, 1)
+        alignment_doc["trusted_share"] = round(kept, 3)
     notice = trust_notice(alignment_doc)
 
     def _render() -> dict[str, bytes]:
