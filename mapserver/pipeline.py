@@ -617,7 +617,7 @@ def process_bundle(
     else:
         view, local_state, drift_m = stages.run("warp", _warp)
     compared = alignment.trusted or in_pieces
-    unfit = stages.run("fit", _fit) if compared else None
+    unfit = stages.run("fit", _fit) if compared and settings.align.fit_check else None
     if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
         # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
         # correction. Aligned in pieces, each region fits on its own or is left out.

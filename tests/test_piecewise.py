@@ -120,7 +120,11 @@ def test_a_moderate_kink_is_not_trusted_whole(tmp_path: Path, bend_deg: float) -
     """A kink one rigid fit scores over min_score (0.63 at 12 degrees) leaves the far side's
     walls off the building: it is aligned in pieces, and the planted box in each is found
     with nothing else reported."""
-    r = process_bundle(_bent_bundle(tmp_path / "bent", bend_deg), Config()).result
+    fit_check = Config().pipeline.align.model_copy(update={"fit_check": True})
+    config = Config().model_copy(
+        update={"pipeline": Config().pipeline.model_copy(update={"align": fit_check})}
+    )
+    r = process_bundle(_bent_bundle(tmp_path / "bent", bend_deg), config).result
     assert r["alignment"]["trusted"] is True and r["alignment"]["pieces"] == 2
     assert len(r["differences"]) <= 4, len(r["differences"])
     for x0, y0, x1, y1 in BOXES:
