@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, OccupancyMap
+
+if TYPE_CHECKING:
+    # Only for types: mapserver.grid imports OpenCV, and the daemon's main process, which
+    # applies bundles to the store, starts without it.
+    from mapserver.grid import Grid
 
 IntArray = NDArray[np.int64]
 
@@ -42,10 +47,6 @@ class Lattice:
             and abs(m.origin[0] - self.x0) <= tol
             and abs(m.origin[1] - self.y0) <= tol
         )
-
-    @property
-    def grid(self) -> Grid:
-        return Grid(self.x0, self.y0, self.resolution, self.width, self.height)
 
     def cells_of_points(self, xy: NDArray[np.float64]) -> tuple[IntArray, IntArray]:
         """(rows, cols) of the cells holding (N, 2) points in metres (may be off the map)."""

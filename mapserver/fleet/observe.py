@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,7 +19,9 @@ from mapserver.fleet.lattice import (
     cells_of_grid_cells,
     states_on_lattice,
 )
-from mapserver.grid import Grid
+
+if TYPE_CHECKING:
+    from mapserver.grid import Grid  # OpenCV: the workers have it, the main process need not
 
 
 @dataclass(frozen=True)
