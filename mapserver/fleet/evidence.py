@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import sqlite3
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,28 +79,38 @@ class TileEvidence:
         )
 
 
+Slices = tuple[slice, slice]
+
+
+def _tiles_over(window: Window) -> Iterator[tuple[int, int, Slices, Slices]]:
+    """``(tile_row, tile_col, in_window, in_tile)`` of every tile the window overlaps: the
+    overlap as slices of a (window.rows, window.cols) array and of a (TILE, TILE) one."""
+    for tr in range(window.row0 // TILE, (window.row0 + window.rows - 1) // TILE + 1):
+        for tc in range(window.col0 // TILE, (window.col0 + window.cols - 1) // TILE + 1):
+            r0, c0 = max(tr * TILE, window.row0), max(tc * TILE, window.col0)
+            r1 = min((tr + 1) * TILE, window.row0 + window.rows)
+            c1 = min((tc + 1) * TILE, window.col0 + window.cols)
+            in_window = (
+                slice(r0 - window.row0, r1 - window.row0),
+                slice(c0 - window.col0, c1 - window.col0),
+            )
+            in_tile = (slice(r0 - tr * TILE, r1 - tr * TILE), slice(c0 - tc * TILE, c1 - tc * TILE))
+            yield tr, tc, in_window, in_tile
+
+
 def pack_tiles(
     window: Window, occupied: NDArray[np.bool_], free: NDArray[np.bool_]
 ) -> tuple[TileDelta, ...]:
     """One bundle's observation (two (window.rows, window.cols) bool arrays on the lattice) as
     per-tile deltas: run in the worker, so that the main process only stores them."""
     out = []
-    for tr in range(window.row0 // TILE, (window.row0 + window.rows - 1) // TILE + 1):
-        for tc in range(window.col0 // TILE, (window.col0 + window.cols - 1) // TILE + 1):
-            r0, c0 = max(tr * TILE, window.row0), max(tc * TILE, window.col0)
-            r1 = min((tr + 1) * TILE, window.row0 + window.rows)
-            c1 = min((tc + 1) * TILE, window.col0 + window.cols)
-            src = (
-                slice(r0 - window.row0, r1 - window.row0),
-                slice(c0 - window.col0, c1 - window.col0),
-            )
-            occ, fr = occupied[src], free[src]
-            if not (occ.any() or fr.any()):
-                continue
-            dst = (slice(r0 - tr * TILE, r1 - tr * TILE), slice(c0 - tc * TILE, c1 - tc * TILE))
-            planes = np.zeros((2, TILE, TILE), bool)
-            planes[0][dst], planes[1][dst] = occ, fr
-            out.append((tr, tc, zlib.compress(np.packbits(planes).tobytes(), 1)))
+    for tr, tc, in_window, in_tile in _tiles_over(window):
+        occ, fr = occupied[in_window], free[in_window]
+        if not (occ.any() or fr.any()):
+            continue
+        planes = np.zeros((2, TILE, TILE), bool)
+        planes[0][in_tile], planes[1][in_tile] = occ, fr
+        out.append((tr, tc, zlib.compress(np.packbits(planes).tobytes(), 1)))
     return tuple(out)
 
 
@@ -189,24 +199,15 @@ def read_window(conn: sqlite3.Connection, map_id: int, window: Window) -> TileEv
     """The evidence over a window of the map (pending deltas included), as three
     (window.rows, window.cols) arrays, zero where nothing was ever seen."""
     out = TileEvidence.empty((window.rows, window.cols))
-    for tr in range(window.row0 // TILE, (window.row0 + window.rows - 1) // TILE + 1):
-        for tc in range(window.col0 // TILE, (window.col0 + window.cols - 1) // TILE + 1):
-            tile = _counters(conn, map_id, tr, tc)
-            for hour, blob in conn.execute(
-                "SELECT hour, data FROM evidence_deltas WHERE map_id = ? AND tile_row = ? "
-                "AND tile_col = ? ORDER BY id",
-                (map_id, tr, tc),
-            ):
-                tile.add(*unpack(blob), hour)
-            r0, c0 = max(tr * TILE, window.row0), max(tc * TILE, window.col0)
-            r1 = min((tr + 1) * TILE, window.row0 + window.rows)
-            c1 = min((tc + 1) * TILE, window.col0 + window.cols)
-            dst = (
-                slice(r0 - window.row0, r1 - window.row0),
-                slice(c0 - window.col0, c1 - window.col0),
-            )
-            src = (slice(r0 - tr * TILE, r1 - tr * TILE), slice(c0 - tc * TILE, c1 - tc * TILE))
-            out.occupied[dst] = tile.occupied[src]
-            out.free[dst] = tile.free[src]
-            out.last_hour[dst] = tile.last_hour[src]
+    for tr, tc, in_window, in_tile in _tiles_over(window):
+        tile = _counters(conn, map_id, tr, tc)
+        for hour, blob in conn.execute(
+            "SELECT hour, data FROM evidence_deltas WHERE map_id = ? AND tile_row = ? "
+            "AND tile_col = ? ORDER BY id",
+            (map_id, tr, tc),
+        ):
+            tile.add(*unpack(blob), hour)
+        out.occupied[in_window] = tile.occupied[in_tile]
+        out.free[in_window] = tile.free[in_tile]
+        out.last_hour[in_window] = tile.last_hour[in_tile]
     return out
