@@ -62,6 +62,13 @@ def _box(cells: IntArray, lattice: Lattice, grow: int) -> tuple[int, int, int, i
     )
 
 
+def _shape(cells: IntArray, lattice: Lattice) -> tuple[int, int, int, int, str]:
+    """What the ``changes`` row keeps of a change's cells: ``row0, col0, row1, col1`` (end
+    exclusive) and its outline as JSON."""
+    row0, col0, last_row, last_col = _box(cells, lattice, 0)
+    return row0, col0, last_row + 1, last_col + 1, json.dumps(lattice.outline(cells))
+
+
 def _boxes_meet(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
@@ -317,24 +324,11 @@ class ChangeTracker:
         obs: Observation,
         stamp: str,
     ) -> int:
-        rows, cols = lattice.unflat(cells)
         cur = self._conn.execute(
             "INSERT INTO changes (map_id, kind, state, first_seen, last_seen, sessions, "
             "last_observed, latest_shows, row0, col0, row1, col1, polygon, updated_at) "
             "VALUES (?, ?, 'pending', ?, ?, 1, ?, 1, ?, ?, ?, ?, ?, ?)",
-            (
-                map_id,
-                kind,
-                stamp,
-                stamp,
-                stamp,
-                int(rows.min()),
-                int(cols.min()),
-                int(rows.max()) + 1,
-                int(cols.max()) + 1,
-                json.dumps(lattice.outline(cells)),
-                now_utc(),
-            ),
+            (map_id, kind, stamp, stamp, stamp, *_shape(cells, lattice), now_utc()),
         )
         cid = int(cur.lastrowid or 0)
         self._conn.executemany(
@@ -434,30 +428,27 @@ class ChangeTracker:
             ],
             np.int64,
         )
-        rows, cols = lattice.unflat(cells)
+        row0, col0, row1, col1, polygon = _shape(cells, lattice)
         self._conn.execute(
-            "UPDATE changes SET sessions = ?, first_seen = ?, last_seen = ?, row0 = ?, col0 = ?, "
-            "row1 = ?, col1 = ?, polygon = ?, updated_at = ?, "
-            "latest_shows = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN 1 ELSE latest_shows END, "
-            "last_observed = CASE WHEN ? IS NOT NULL AND ? >= last_observed THEN ? ELSE last_observed END "
-            "WHERE id = ?",
-            (
-                sessions,
-                first,
-                last,
-                int(rows.min()),
-                int(cols.min()),
-                int(rows.max()) + 1,
-                int(cols.max()) + 1,
-                json.dumps(lattice.outline(cells)),
-                now_utc(),
-                stamp_shown,
-                stamp_shown,
-                stamp_shown,
-                stamp_shown,
-                stamp_shown,
-                cid,
-            ),
+            "UPDATE changes SET sessions = :sessions, first_seen = :first, last_seen = :last, "
+            "row0 = :row0, col0 = :col0, row1 = :row1, col1 = :col1, polygon = :polygon, "
+            "updated_at = :now, "
+            "latest_shows = CASE WHEN :shown >= last_observed THEN 1 ELSE latest_shows END, "
+            "last_observed = CASE WHEN :shown >= last_observed THEN :shown ELSE last_observed END "
+            "WHERE id = :id",
+            {
+                "sessions": sessions,
+                "first": first,
+                "last": last,
+                "row0": row0,
+                "col0": col0,
+                "row1": row1,
+                "col1": col1,
+                "polygon": polygon,
+                "now": now_utc(),
+                "shown": stamp_shown,  # NULL: the comparisons are NULL, nothing changes
+                "id": cid,
+            },
         )
 
     def resolve_merged(self, change_id: int) -> int:
