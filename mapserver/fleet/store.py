@@ -280,13 +280,11 @@ class FleetStore:
 
     def _rollback(self, name: str, version: int, actor: str) -> VersionInfo:
         map_id, lattice, yaw, _ = self._map(name)
-        row = self._conn.execute(
-            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
-        ).fetchone()
-        if row is None:
+        source = self._version_yaml(map_id, name, version)
+        if source is None:
             known = self._current_version(map_id)
             raise StoreError(f"map {name!r} has no version {version} (versions 1..{known})")
-        state = load_map(self.root / name / row[0]).state
+        state = load_map(source).state
         undone = [
             r[0]
             for r in self._conn.execute(
@@ -683,10 +681,9 @@ class FleetStore:
         cached = self._states.get(map_id)
         if cached is not None and cached[0] == version:
             return cached[1]
-        y = self._conn.execute(
-            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
-        ).fetchone()[0]
-        state = load_map(self.root / name / y).state
+        source = self._version_yaml(map_id, name, version)
+        assert source is not None  # the current version has a row
+        state = load_map(source).state
         state.flags.writeable = False
         self._states[map_id] = (version, state)
         return state
@@ -783,19 +780,13 @@ class FleetStore:
         folder = self.root / name
         version = self._current_version(map_id)
         current_yaml = folder / publish.CURRENT
-        wanted = self._conn.execute(
-            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
-        ).fetchone()[0]
+        wanted = self._version_yaml(map_id, name, version)
+        assert wanted is not None  # the current version has a row
         # A process that died between a version's commit and current.yaml's rename left it
         # behind: every update compares the two (tiny) files.
-        stale = (
-            not current_yaml.exists() or current_yaml.read_bytes() != (folder / wanted).read_bytes()
-        )
+        stale = not current_yaml.exists() or current_yaml.read_bytes() != wanted.read_bytes()
         if force or stale:
-            y = self._conn.execute(
-                "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
-            ).fetchone()[0]
-            publish.write_current(folder, folder / y)
+            publish.write_current(folder, wanted)
         keep = [self._paint_cells(cid) for cid in self._confirmed_ids(map_id)]
         cells = np.unique(
             np.concatenate([c for k, c in keep if k == "added"] or [np.zeros(0, np.int64)])
@@ -884,6 +875,13 @@ class FleetStore:
         assert row is not None
         map_id, w, h, res, ox, oy, yaw, created = row
         return map_id, Lattice(w, h, res, ox, oy), yaw, created
+
+    def _version_yaml(self, map_id: int, name: str, version: int) -> Path | None:
+        """The YAML of a version of a map, or None when it has no such version."""
+        row = self._conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? AND version = ?", (map_id, version)
+        ).fetchone()
+        return None if row is None else self.root / name / row[0]
 
     def _current_version(self, map_id: int) -> int:
         return int(
