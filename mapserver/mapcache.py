@@ -4,7 +4,8 @@ Every bundle carries (or names) the global map, and in a fleet it is nearly alwa
 decoding it again for each bundle costs more than the rest of the pipeline on large PNG maps.
 The key is the content (the YAML's bytes and the image's sha256, taken from the manifest's
 checksums when the completeness check has already verified them), so a changed map is never
-served stale, whatever its path or time stamp.
+served stale, whatever its path. An image's hash
+is remembered by path, size and modification time (a rewritten file is hashed again).
 
 The cached arrays are made read-only: the pipeline's stages are pure functions and must not
 write to them.
@@ -21,6 +22,9 @@ from pathlib import Path
 from mapserver.bundle import sha256_file
 from mapserver.maps import OccupancyMap, load_map
 
+# How many image digests a cache remembers (a few per map in use: the bundles' copies).
+_DIGESTS_KEPT = 16
+
 
 class MapCache:
     """Least-recently-used cache of :class:`OccupancyMap` by content; ``capacity`` maps."""
@@ -32,7 +36,26 @@ class MapCache:
         self.hits = 0
         self.misses = 0
         self._maps: OrderedDict[tuple[str, str], OccupancyMap] = OrderedDict()
+        self._digests: OrderedDict[tuple[str, int, int], str] = OrderedDict()
         self._lock = threading.Lock()
+
+    def digest(self, image_path: Path, known: str | None = None) -> str:
+        """The sha256 of an image: ``known`` when given (already verified), else remembered by
+        path, size and mtime (the maps a worker sees are hashed once, for the cache's key and
+        for whoever asks again: the fleet map's lookup)."""
+        if known:
+            return known.lower()
+        st = Path(image_path).stat()
+        key = (str(image_path), st.st_size, st.st_mtime_ns)
+        with self._lock:
+            found = self._digests.get(key)
+        if found is None:
+            found = sha256_file(image_path)
+            with self._lock:
+                self._digests[key] = found
+                while len(self._digests) > _DIGESTS_KEPT:
+                    self._digests.popitem(last=False)
+        return found
 
     def load(
         self,
@@ -65,7 +88,7 @@ class MapCache:
             return load()
         try:
             yaml_digest = hashlib.sha256(Path(yaml_path).read_bytes()).hexdigest()
-            image_digest = image_sha256 or sha256_file(image_path)
+            image_digest = self.digest(image_path, image_sha256)
         except OSError:
             # Let the loader report the problem with its own, precise message.
             return load()

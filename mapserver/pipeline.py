@@ -446,7 +446,7 @@ def _map_link(
         known = (files.manifest.checksums or {}).get(
             files.nav2_image.relative_to(bundle_dir).as_posix()
         )
-    digest = known or _image_digest(image)
+    digest = GLOBAL_MAPS.digest(image, known)
     link = store.lookup(maps_root, digest)
     if link is None:
         warnings.append(
@@ -461,20 +461,6 @@ def _map_link(
         )
         return None
     return link
-
-
-_DIGESTS: dict[tuple[str, int, int], str] = {}
-
-
-def _image_digest(path: Path) -> str:
-    """sha256 of an image, remembered by path, size and mtime (the reference map is hashed
-    once per worker, not once per bundle)."""
-    st = path.stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    digest = _DIGESTS.get(key)
-    if digest is None:
-        digest = _DIGESTS[key] = sha256_file(path)
-    return digest
 
 
 def process_bundle(
