@@ -1068,26 +1068,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    unknown = [c for c in cases if c not in CASES]
-    if unknown or not cases:
-        parser.error(
-            f"--cases: unknown {', '.join(unknown) or '(none given)'}; know {', '.join(CASES)}"
-        )
-    if args.count < 1:
-        parser.error(f"--count must be >= 1, got {args.count}")
-    if args.out_dir.exists() and any(args.out_dir.iterdir()) and not args.force:
-        parser.error(f"{args.out_dir} is not empty (use --force to write into it)")
+    cases = scen.checked_cases(parser, args, list(CASES))
     plans = make_plans(args.seed, args.count, cases, args.maps)
-    missing = sorted(
-        {str(args.maps / scen.REAL_MAPS[p.world.name]) for p in plans if p.world.kind == "real"}
-        - {str(args.maps / y) for y in scen.REAL_MAPS.values() if (args.maps / y).is_file()}
-    )
-    if missing:
-        parser.error(f"--maps: missing {', '.join(missing)}")
-    if args.force:
-        for plan in plans:
-            shutil.rmtree(args.out_dir / plan.name, ignore_errors=True)
+    scen.prepare_out(parser, args, plans)
     start = time.perf_counter()
     entries = generate(args.out_dir, plans, seed=args.seed, cases=cases, jobs=args.jobs)
     for e in entries:

@@ -974,21 +974,29 @@ def _parse_overrides(items: Sequence[str], parser: argparse.ArgumentParser) -> P
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def checked_cases(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, known: Sequence[str]
+) -> list[str]:
+    """``--cases`` as a list, once ``--cases``, ``--count`` and the output folder are checked
+    (``parser.error`` otherwise): shared by this script and ``make_histories.py``."""
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    unknown = [c for c in cases if c not in CASES]
+    unknown = [c for c in cases if c not in known]
     if unknown or not cases:
         parser.error(
-            f"--cases: unknown {', '.join(unknown) or '(none given)'}; know {', '.join(CASES)}"
+            f"--cases: unknown {', '.join(unknown) or '(none given)'}; know {', '.join(known)}"
         )
     if args.count < 1:
         parser.error(f"--count must be >= 1, got {args.count}")
     if args.out_dir.exists() and any(args.out_dir.iterdir()) and not args.force:
         parser.error(f"{args.out_dir} is not empty (use --force to write into it)")
-    overrides = _parse_overrides(args.override, parser)
-    plans = make_plans(args.seed, args.count, cases, overrides, args.maps)
+    return cases
+
+
+def prepare_out(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, plans: Sequence[Any]
+) -> None:
+    """Check that the real maps the plans use are under ``--maps`` (``parser.error``
+    otherwise), and with ``--force`` clear the plans' folders."""
     missing = sorted(
         {str(args.maps / REAL_MAPS[p.world.name]) for p in plans if p.world.kind == "real"}
         - {str(args.maps / y) for y in REAL_MAPS.values() if (args.maps / y).is_file()}
@@ -998,6 +1006,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.force:
         for plan in plans:
             shutil.rmtree(args.out_dir / plan.name, ignore_errors=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    cases = checked_cases(parser, args, CASES)
+    overrides = _parse_overrides(args.override, parser)
+    plans = make_plans(args.seed, args.count, cases, overrides, args.maps)
+    prepare_out(parser, args, plans)
     start = time.perf_counter()
     entries = generate(
         args.out_dir,
