@@ -151,6 +151,26 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _leaf(
+    sub: Any,
+    name: str,
+    help_text: str,
+    func: Any,
+    example: str | None = None,
+    description: str | None = None,
+) -> argparse.ArgumentParser:
+    """One ``maps``/``changes`` subcommand: its help, example, ``--config`` and function."""
+    extra: dict[str, Any] = {}
+    if example is not None:
+        extra = {"formatter_class": argparse.RawDescriptionHelpFormatter, "epilog": example}
+    p: argparse.ArgumentParser = sub.add_parser(
+        name, help=help_text, description=description, **extra
+    )
+    p.add_argument("--config", type=Path, default=None)
+    p.set_defaults(func=func)
+    return p
+
+
 def register(sub: Any) -> None:
     """Add the ``maps`` and ``changes`` commands to the ``mapserver`` parser."""
     from mapserver.fleet.model import STATES
@@ -165,41 +185,36 @@ def register(sub: Any) -> None:
         epilog="example:\n  mapserver maps add depot /opt/maps/depot.yaml --config /etc/mapserver/mapserver.yaml",
     )
     msub = maps.add_subparsers(dest="maps_command", required=True)
-    p = msub.add_parser(
+    p = _leaf(
+        msub,
         "add",
-        help="register a building map as version 1",
-        formatter_class=fmt,
-        epilog="example:\n  mapserver maps add depot /opt/maps/depot.yaml\n"
+        "register a building map as version 1",
+        _cmd_maps_add,
+        "example:\n  mapserver maps add depot /opt/maps/depot.yaml\n"
         "then point Nav2's map_server at <maps>/depot/current.yaml",
     )
     p.add_argument("name", help="the map's name: letters, digits, '.', '_', '-'")
     p.add_argument("map_yaml", type=Path, help="the map's YAML (ROS map_server format)")
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_maps_add)
-    p = msub.add_parser("list", help="the stored maps with their current version")
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_maps_list)
-    p = msub.add_parser(
+    _leaf(msub, "list", "the stored maps with their current version", _cmd_maps_list)
+    p = _leaf(
+        msub,
         "show",
-        help="a map's versions: time, changes published, sha256",
-        formatter_class=fmt,
-        epilog="example:\n  mapserver maps show depot",
+        "a map's versions: time, changes published, sha256",
+        _cmd_maps_show,
+        "example:\n  mapserver maps show depot",
     )
     p.add_argument("name")
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_maps_show)
-    p = msub.add_parser(
+    p = _leaf(
+        msub,
         "rollback",
-        help="publish a new version equal to an earlier one",
+        "publish a new version equal to an earlier one",
+        _cmd_maps_rollback,
+        "example:\n  mapserver maps rollback depot 3",
         description="Publishes a NEW version equal to VERSION (history is never rewritten). "
         "Changes published after VERSION become rejected, so that they are not published again.",
-        formatter_class=fmt,
-        epilog="example:\n  mapserver maps rollback depot 3",
     )
     p.add_argument("name")
     p.add_argument("version", type=_positive_int)
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_maps_rollback)
 
     changes = sub.add_parser(
         "changes",
@@ -208,26 +223,22 @@ def register(sub: Any) -> None:
         epilog="example:\n  mapserver changes list --state confirmed\n  mapserver changes approve 17",
     )
     csub = changes.add_subparsers(dest="changes_command", required=True)
-    p = csub.add_parser("list", help="tracked changes, oldest first")
+    p = _leaf(csub, "list", "tracked changes, oldest first", _cmd_changes_list)
     p.add_argument("--state", choices=STATES, default=None)
     p.add_argument("--map", default=None, help="only this map's changes")
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_changes_list)
-    p = csub.add_parser(
+    p = _leaf(
+        csub,
         "approve",
-        help="publish a confirmed change (review mode)",
-        formatter_class=fmt,
-        epilog="example:\n  mapserver changes approve 17",
+        "publish a confirmed change (review mode)",
+        _cmd_changes_approve,
+        "example:\n  mapserver changes approve 17",
     )
     p.add_argument("id", type=_positive_int)
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_changes_approve)
-    p = csub.add_parser(
+    p = _leaf(
+        csub,
         "reject",
-        help="never publish a pending or confirmed change",
-        formatter_class=fmt,
-        epilog="example:\n  mapserver changes reject 18",
+        "never publish a pending or confirmed change",
+        _cmd_changes_reject,
+        "example:\n  mapserver changes reject 18",
     )
     p.add_argument("id", type=_positive_int)
-    p.add_argument("--config", type=Path, default=None)
-    p.set_defaults(func=_cmd_changes_reject)
