@@ -32,7 +32,7 @@ from mapserver import __version__
 from mapserver.bundle import BUNDLE_ID_RE
 from mapserver.config import Config
 from mapserver.errors import MapserverError, StoreError
-from mapserver.fleet.model import STATES, ChangeInfo
+from mapserver.fleet.model import STATES, ChangeInfo, VersionInfo
 from mapserver.maps import load_map
 from mapserver.status import Report, report
 from mapserver.web import pictures, security
@@ -102,6 +102,16 @@ class VersionOut(BaseModel):
     sha256: str
     note: str
     changes: list[int]
+
+    @staticmethod
+    def of(v: VersionInfo) -> "VersionOut":
+        return VersionOut(
+            version=v.version,
+            created_at=v.created_at,
+            sha256=v.sha256,
+            note=v.note,
+            changes=list(v.changes),
+        )
 
 
 class MapOut(BaseModel):
@@ -425,16 +435,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         lat = m.lattice
         versions = None
         if with_versions:
-            versions = [
-                VersionOut(
-                    version=v.version,
-                    created_at=v.created_at,
-                    sha256=v.sha256,
-                    note=v.note,
-                    changes=list(v.changes),
-                )
-                for v in store.versions(name)
-            ]
+            versions = [VersionOut.of(v) for v in store.versions(name)]
         return MapOut(
             name=m.name,
             current_version=m.current_version,
@@ -484,13 +485,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     @app.post("/api/changes/{change_id}/approve", response_model=VersionOut, tags=["changes"])
     def api_approve(change_id: int, actor: Annotated[str, Depends(require_token)]) -> VersionOut:
         v = store_call(lambda s: s.approve(change_id, actor=actor))
-        return VersionOut(
-            version=v.version,
-            created_at=v.created_at,
-            sha256=v.sha256,
-            note=v.note,
-            changes=list(v.changes),
-        )
+        return VersionOut.of(v)
 
     @app.post("/api/changes/{change_id}/reject", response_model=ChangeOut, tags=["changes"])
     def api_reject(change_id: int, actor: Annotated[str, Depends(require_token)]) -> ChangeOut:
@@ -501,13 +496,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         name: str, body: Rollback, actor: Annotated[str, Depends(require_token)]
     ) -> VersionOut:
         v = store_call(lambda s: s.rollback(name, body.version, actor=actor))
-        return VersionOut(
-            version=v.version,
-            created_at=v.created_at,
-            sha256=v.sha256,
-            note=v.note,
-            changes=list(v.changes),
-        )
+        return VersionOut.of(v)
 
     # -- pages --------------------------------------------------------------------------------
 
