@@ -48,7 +48,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from daemon_support import make_bundle  # noqa: E402  (the tests' small bundles)
+from daemon_support import fill_disk, make_bundle  # noqa: E402  (the tests' helpers)
 from test_service_daemon import BAD  # noqa: E402  (the tests' table of malformed bundles)
 
 from mapserver.board import FAULT_ENV  # noqa: E402
@@ -86,23 +86,6 @@ def mount_small_disk(path: Path, size_mb: int) -> str | None:
     command = ["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "bench-faults", str(path)]
     done = subprocess.run(command, capture_output=True, text=True)
     return None if done.returncode == 0 else f"cannot mount a tmpfs: {done.stderr.strip()}"
-
-
-def fill(folder: Path) -> Path:
-    """``folder/filler`` written until not one more byte fits."""
-    filler = folder / "filler"
-    fd = os.open(filler, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        for size in (1 << 22, 1 << 16, 1 << 12, 1):
-            block = bytes(size)
-            while True:
-                try:
-                    os.write(fd, block)
-                except OSError:
-                    break
-    finally:
-        os.close(fd)
-    return filler
 
 
 def make_uploads(work: Path, bundles: int, rng: random.Random) -> list[Upload]:
@@ -301,7 +284,7 @@ def main() -> Run:
             second = second_daemon(config)
             checked_second = True
         elif no_disk is None and filler is None and full_seconds == 0.0 and n >= full_at:
-            filler = fill(disk)
+            filler = fill_disk(disk)
             full_since = time.monotonic()
             events.append(f"disk full at {n} results")
         elif (
