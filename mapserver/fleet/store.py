@@ -35,7 +35,7 @@ from mapserver.errors import StoreError
 from mapserver.fleet import evidence, publish, tracker
 from mapserver.fleet.changes import ChangeTracker
 from mapserver.fleet.db import connect, connect_readonly, transaction
-from mapserver.fleet.lattice import IntArray, Lattice, Window
+from mapserver.fleet.lattice import IntArray, Lattice
 from mapserver.fleet.model import (
     STATES,
     ChangeInfo,
@@ -623,10 +623,6 @@ class FleetStore:
             for map_id, tr, tc in tiles:
                 folded += evidence.fold(self._conn, map_id, [(tr, tc)])
         return folded
-
-    def evidence(self, name: str, window: Window) -> evidence.TileEvidence:
-        """The evidence counters over a window of a map (cells [row, col] from its corner)."""
-        return evidence.read_window(self._conn, self._map(name)[0], window)
 
     def sync(self) -> None:
         """Bring the files in line with the database (after a crash between a commit and the
