@@ -50,7 +50,7 @@ from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
 from mapserver.outbox import RESULT, Store, utc_now
 from mapserver.retention import Retention
-from mapserver.status import write_status
+from mapserver.status import STATUS_NAME, write_status
 from mapserver.trust import trust_notice
 from mapserver.worker import ProcessFn, WorkDone, init_worker, noop, process_taken_bundle, work
 
@@ -168,12 +168,14 @@ class Service:
         self._checkpoint = env_checkpoint()
         self._store = Store.from_config(config, checkpoint=self._stepped)
         self._moved_out_at = float("-inf")
+        """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
         self._moved_since_arm = 0
         """Bundles moved out of the inbox's tree since the inotify watches were last set up."""
         self._handler: InboxHandler | None = None
         self._started_at = utc_now()
         self._status_written: tuple[object, float] = ((), float("-inf"))
-        """When a bundle last left the inbox's tree (to archive/ or failed/), monotonic."""
+        self._status_unwritable = False
+        """Whether the last write of the status file failed (said once, at WARNING)."""
         self._workers = config.worker_count()
         self._tracker = StabilityTracker(
             config.inbox,
@@ -905,9 +907,19 @@ class Service:
         }
         try:
             write_status(self._config.inbox, document)
-        except OSError as error:  # never worth stopping for
-            log.debug("cannot write the status file: %s", error)
+        except OSError as error:  # never worth stopping for, but `mapserver status` goes stale
+            if not self._status_unwritable:
+                log.warning(
+                    "cannot write the status file %s: %s (tried again every %g s)",
+                    self._config.inbox / STATUS_NAME,
+                    error,
+                    self._ping_every,
+                )
+            self._status_unwritable = True
             return
+        if self._status_unwritable:
+            log.info("the status file is written again")
+        self._status_unwritable = False
         self._status_written = (state, now)
 
     # -- the observer ------------------------------------------------------------------------

@@ -118,16 +118,23 @@ def upload(
 
 
 def wait_until(
-    predicate: Callable[[], Any], *, timeout: float, what: str, interval: float = 0.02
+    predicate: Callable[[], Any],
+    *,
+    timeout: float,
+    what: str,
+    interval: float = 0.02,
+    context: Callable[[], str] | None = None,
 ) -> Any:
-    """Poll ``predicate`` until it returns something true; fail after ``timeout`` seconds."""
+    """Poll ``predicate`` until it returns something true; fail after ``timeout`` seconds, with
+    ``context()`` (what tells why: a log, a file) in the message."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            extra = f"\n{context()}" if context is not None else ""
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}{extra}")
         time.sleep(interval)
 
 

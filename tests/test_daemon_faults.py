@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import shutil
 import sqlite3
 from pathlib import Path
 from typing import Any
@@ -53,6 +54,19 @@ def taken(root: Path) -> list[str]:
     return visible(root / "inbox" / ".taken")
 
 
+def status_and_log(disk: Path, daemon: Daemon) -> str:
+    """What tells why a wait failed: the status file as it is, the disk's space, the log."""
+    try:
+        status = (disk / "inbox" / STATUS_NAME).read_text(errors="replace")
+    except OSError as error:
+        status = f"unreadable: {error}"
+    usage = shutil.disk_usage(disk)
+    return (
+        f"status file:\n{status}\nfree {usage.free} of {usage.total} bytes\n"
+        f"daemon log:\n{daemon.log()}"
+    )
+
+
 def degraded_warnings(log: str) -> list[str]:
     return [
         line
@@ -85,8 +99,9 @@ def test_a_full_disk_keeps_two_good_bundles_waiting_and_does_each_once_when_spac
             assert list((disk / "outbox").iterdir()) == []
             wait_until(
                 lambda: (read_status(disk / "inbox") or {}).get("degraded"),
-                timeout=10,
+                timeout=30,
                 what="the status file to say degraded (written in place on the full disk)",
+                context=lambda: status_and_log(disk, daemon),
             )
             found = report(load_config(config))
             assert found.degraded is not None and found.degraded["waiting"] == 2
@@ -102,8 +117,9 @@ def test_a_full_disk_keeps_two_good_bundles_waiting_and_does_each_once_when_spac
             wait_until(lambda: done(disk, ["a", "b"]), timeout=60, what="both results")
             wait_until(
                 lambda: (read_status(disk / "inbox") or {"degraded": 1}).get("degraded") is None,
-                timeout=10,
+                timeout=30,
                 what="the status file to say healthy again",
+                context=lambda: status_and_log(disk, daemon),
             )
             assert daemon.stop() == 0, daemon.log()
         log = daemon.log()
