@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import sqlite3
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -413,6 +414,22 @@ def test_a_robot_with_a_wrong_clock_does_not_feed_the_map(
     assert update.warnings and "check the robot's clock" in update.warnings[0]
     (change,) = store.changes("hall")
     assert change.sessions == 2 and change.state == "pending"  # a 56-year span would confirm it
+
+
+def test_sessions_dated_days_ahead_of_the_server_clock_still_feed_the_map(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Recorded sessions replayed on a server whose clock is behind them (or robots a few days
+    # off): their evidence counts as stamped, so the wall is confirmed over their span.
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    ahead = datetime.now(timezone.utc) + timedelta(days=20)
+    for hours in (0, 8, 16):
+        stamp = (ahead + timedelta(hours=hours)).strftime("%Y-%m-%dT%H:%M:%SZ")
+        update = store.apply(dataclasses.replace(wall_seen(robot, hours), stamp=stamp))
+        assert not update.warnings
+    (change,) = store.changes("hall")
+    assert change.sessions == 3 and change.state == "published"
 
 
 def test_late_sessions_from_before_a_published_wall_do_not_erase_it(

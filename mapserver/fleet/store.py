@@ -54,8 +54,10 @@ log = logging.getLogger(__name__)
 WRITER_LOCK = ".writer.lock"
 
 
-# How far ahead of this server's clock a bundle's stamp may be (robots without NTP drift).
-_FUTURE_TOLERANCE = timedelta(hours=24)
+# How far ahead of this server's clock a bundle's stamp may be. Generous: a clock a few minutes
+# or days off (no NTP) is harmless, and so are recorded sessions replayed on a server whose own
+# clock is behind them (a test rig, a benchmark); a year ahead is a clock set wrong.
+_FUTURE_TOLERANCE = timedelta(days=366)
 _EARLIEST_STAMP = "2000-01-01T00:00:00Z"
 
 
@@ -65,7 +67,7 @@ def _implausible_stamp(stamp: str) -> str | None:
         return f"its stamp {stamp} is before 2000: check the robot's clock"
     limit = datetime.now(timezone.utc) + _FUTURE_TOLERANCE
     if tracker.parse_stamp(stamp) > limit:
-        return f"its stamp {stamp} is more than a day ahead of this server's clock: check the robot's clock"
+        return f"its stamp {stamp} is more than a year ahead of this server's clock: check the robot's clock"
     return None
 
 
