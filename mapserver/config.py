@@ -85,6 +85,10 @@ class DiffConfig(_Frozen):
     removed one by as much."""
     misfit_tile_m: float = Field(3.0, gt=0)
     """The misfit is measured over the walls of each tile of this size and its neighbours."""
+    along_wall_m: float = Field(0.35, ge=0)
+    """An added obstacle that never gets further than this from a global wall, and lies all
+    on one side of it, is that wall seen displaced (drift left over, a face seen thicker), not
+    a new obstacle. 0 turns the rule off."""
     removed_tolerance_m: float = Field(0.25, ge=0)
     """Removed cells must be this far from any wall the local map sees: rays grazing a wall get
     few hits and mark slivers of its face free."""

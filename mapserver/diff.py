@@ -346,6 +346,54 @@ def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     return out
 
 
+def drop_along_walls(
+    added: BoolArray,
+    walls: BoolArray,
+    *,
+    resolution: float,
+    within_m: float,
+    min_agreement: float = 0.85,
+) -> BoolArray:
+    """``added`` without its components that lie along one wall of the global map: every cell
+    within ``within_m`` of a wall, all on the same side of it (the directions to their nearest
+    wall agree: the mean of their unit vectors is at least ``min_agreement`` long).
+
+    That is a wall of the global map seen displaced: drift the warp did not take out, or a
+    wall's face seen a cell or two further out than it was drawn. It runs parallel to the wall
+    it came from and never gets further from it than the displacement. A new obstacle reaches
+    further out, and a piece that closes a gap between two walls lies between them (its cells'
+    nearest walls are on opposite sides): both are kept. Returns a new (H, W) bool array.
+    """
+    out = added.copy()
+    x, y, w, h = cv2.boundingRect(out.view(np.uint8))
+    if w == 0 or not walls.any():
+        return out
+    # Room for the reach, and for the nearest wall to be found inside the box.
+    m = math.ceil(within_m / resolution) + 2
+    r0, c0 = max(y - m, 0), max(x - m, 0)
+    box = (slice(r0, y + h + m), slice(c0, x + w + m))
+    part = out[box]
+    dist = distance_to(walls[box])
+    n, labels = cv2.connectedComponents(part.view(np.uint8), connectivity=8)
+    rows, cols = nonzero_cells(part)
+    label = labels[rows, cols]
+    # The unit vectors away from the nearest wall (the distance field's gradient).
+    gx = cv2.Sobel(dist, cv2.CV_32F, 1, 0, ksize=3)[rows, cols]
+    gy = cv2.Sobel(dist, cv2.CV_32F, 0, 1, ksize=3)[rows, cols]
+    norm = np.hypot(gx, gy)
+    norm[norm == 0] = 1.0
+    count = np.bincount(label, minlength=n).astype(np.float64)
+    count[count == 0] = 1.0
+    mean_x = np.bincount(label, gx / norm, minlength=n) / count
+    mean_y = np.bincount(label, gy / norm, minlength=n) / count
+    farthest = np.zeros(n, np.float32)
+    np.maximum.at(farthest, label.astype(np.intp), dist[rows, cols])
+    along = (farthest * resolution <= within_m) & (np.hypot(mean_x, mean_y) >= min_agreement)
+    along[0] = False
+    part[along[labels]] = False
+    return out
+
+
 def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
     """Remove specks: components smaller than ``min_pixels`` (a few local cells of scan noise).
 
@@ -360,6 +408,7 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
 __all__ = [
     "DiffMasks",
     "distance_to",
+    "drop_along_walls",
     "drop_small",
     "filter_noise",
     "misfit_tolerance",

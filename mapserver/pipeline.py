@@ -383,6 +383,14 @@ def _diff_masks(
     )
     min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
     filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
+    if d.along_wall_m > 0 and filtered.added.any():
+        # The walls drawn (occupied and grey cells); not the edge of what is known, which no
+        # robot saw displaced.
+        walls = structure | (global_state == OCCUPIED)
+        added = diff_stage.drop_along_walls(
+            filtered.added, walls, resolution=grid.resolution, within_m=d.along_wall_m
+        )
+        filtered = diff_stage.DiffMasks(added, filtered.removed)
     evidence = diff_stage.removal_evidence(
         global_state,
         local_state,

@@ -18,7 +18,14 @@ from mapserver.cluster import (
     sort_by_area,
 )
 from mapserver.deform import warp_local
-from mapserver.diff import DiffMasks, drop_small, filter_noise, misfit_tolerance, raw_differences
+from mapserver.diff import (
+    DiffMasks,
+    drop_along_walls,
+    drop_small,
+    filter_noise,
+    misfit_tolerance,
+    raw_differences,
+)
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
@@ -296,3 +303,46 @@ def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() 
     )
     # Away from the crop's edge (where walls outside it no longer count) the tiles agree.
     assert np.array_equal(part[60:, 60:], whole[r0 + 60 :, c0 + 60 :])
+
+
+def _hall() -> np.ndarray:
+    """A 6 m x 6 m hall at 0.05 m: one long wall (rows 40-42), and a doorway gap in a cross
+    wall (rows 80-82, cols 40-55 open between two wall ends)."""
+    walls = np.zeros((120, 120), bool)
+    walls[40:43, :] = True
+    walls[80:83, :40] = True
+    walls[80:83, 56:] = True
+    return walls
+
+
+def test_a_wall_seen_displaced_along_itself_is_not_added() -> None:
+    walls = _hall()
+    added = np.zeros(walls.shape, bool)
+    added[47, 10:60] = True  # the wall's face seen 0.25 m off, along it (drift)
+    added[46:50, 70] = True  # a short stub, all within 0.35 m, on the same side
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35)
+    assert not kept.any()
+    # Further out than the displacement a robot's drift leaves: a new obstacle.
+    far = np.zeros(walls.shape, bool)
+    far[52, 10:60] = True  # 0.5 m from the wall
+    assert np.array_equal(drop_along_walls(far, walls, resolution=RES, within_m=0.35), far)
+
+
+def test_an_obstacle_against_a_wall_that_reaches_out_is_kept() -> None:
+    walls = _hall()
+    added = np.zeros(walls.shape, bool)
+    added[43:58, 20] = True  # a shelf's side: from the wall out to 0.75 m
+    added[57, 20:40] = True  # its front
+    added[47, 60:80] = True  # and elsewhere, a displaced face, dropped alone
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35)
+    assert kept[43:58, 20].all() and kept[57, 20:40].all()
+    assert not kept[47, 60:80].any()
+
+
+def test_a_piece_closing_a_doorway_is_kept() -> None:
+    walls = _hall()
+    added = np.zeros(walls.shape, bool)
+    added[81, 40:56] = True  # 0.8 m across the gap: no cell further than 0.4 m from a wall end
+    # Within 0.45 m of a wall everywhere, but the nearest walls are on both sides.
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.45)
+    assert np.array_equal(kept, added)

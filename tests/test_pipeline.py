@@ -20,7 +20,7 @@ from mapserver.pipeline import process_bundle
 
 TRUE = Transform2D(-0.9, 3.0, 8.0)
 CENTRE = (12.0, 6.0)
-ADDED_BOX = (13.0, 4.0, 13.6, 4.5)  # metres, nav2
+ADDED_BOX = (13.9, 4.0, 14.5, 4.5)  # metres, nav2: 0.5 m out from a wall
 
 
 def _hash_tree(path: Path) -> dict[str, str]:
@@ -62,10 +62,10 @@ def test_result_follows_the_contract(bundle: Path) -> None:
     assert [d["kind"] for d in r["differences"]] == ["added"]
     d = r["differences"][0]
     assert d["id"] == 1
-    assert d["centroid"]["x"] == pytest.approx(13.3, abs=0.35)
+    assert d["centroid"]["x"] == pytest.approx(14.2, abs=0.35)
     assert d["centroid"]["y"] == pytest.approx(4.25, abs=0.25)
     b = d["bbox"]
-    assert b["min_x"] >= 12.8 and b["max_x"] <= 13.8 and b["min_y"] >= 3.8 and b["max_y"] <= 4.7
+    assert b["min_x"] >= 13.7 and b["max_x"] <= 14.7 and b["min_y"] >= 3.8 and b["max_y"] <= 4.7
     assert 0 < d["area_m2"] <= 0.6 * 0.5 + 0.05 and d["pixels"] > 5
     yaml.safe_load(yaml.safe_dump(r))  # plain data only
 
