@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -49,7 +50,12 @@ def make_bundle(
         room[r : r + int(rng.integers(4, 12)), c : c + 3] = OCCUPIED
     save_map(path / "nav2_map.yaml", room, 0.05, (-1.0, -2.0, 0.0))
     local = room.copy()
-    r, c = (int(v) for v in rng.integers(15, size - 25, 2))
+    # The box 0.5 m clear of every wall (closer, it could be that wall seen displaced).
+    walls = cv2.dilate((room == OCCUPIED).view(np.uint8), np.ones((21, 21), np.uint8)) > 0
+    while True:
+        r, c = (int(v) for v in rng.integers(15, size - 25, 2))
+        if not walls[r : r + 6, c : c + 6].any():
+            break
     local[r : r + 6, c : c + 6] = OCCUPIED
     local[:, : size // 6] = UNKNOWN
     save_map(path / "slam_map.yaml", local, 0.05, (-1.0, -2.0, 0.0))
