@@ -646,6 +646,8 @@ def time_window(
     return start, anchor + int(rng.integers(5, 40))
 
 
+_MIN_REMOVED_M2 = 0.1
+
 _PREFER: dict[str, tuple[str, ...]] = {
     "reverted-added": ("wall",),
     "cart": ("box",),
@@ -656,11 +658,14 @@ _PREFER: dict[str, tuple[str, ...]] = {
 
 def _candidate(role: Role, pool: Sequence[Planted], site: Site) -> Planted | None:
     """The pool's first candidate for a role: of its kind, of a shape it wants (a cart must be
-    a box; a reverted obstacle had better be a wall), a removed one erasing >= 5 map cells.
-    The pickier roles choose first (``_PICKY``)."""
+    a box; a reverted obstacle had better be a wall), a removed one erasing >= 0.1 m2 of the
+    map (a 0.3 m column; the public histories' smallest removal erases 0.28 m2, and a few cells
+    are a speck no operator would call a change). The pickier roles choose first
+    (``_PICKY``)."""
     fits = [p for p in pool if p.change.kind == role.kind]
     if role.kind == "removed":
-        fits = [p for p in fits if len(erased_cells(site, p)) >= 5]
+        cell_m2 = site.reference.resolution**2
+        fits = [p for p in fits if len(erased_cells(site, p)) * cell_m2 >= _MIN_REMOVED_M2]
     prefer = _PREFER.get(role.what, ())
     best = [p for p in fits if p.change.shape in prefer]
     if best or role.what.startswith("cart"):

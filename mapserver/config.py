@@ -100,6 +100,9 @@ class DiffConfig(_Frozen):
     see_through_m: float = Field(0.35, ge=0)
     """... or with open space on both sides within this distance: the robot looked through
     where it was. A wall face eroded by grazing rays has neither."""
+    both_sides_m: float = Field(1.0, ge=0)
+    """... or seen free from both sides of the structure, open space on each within this
+    distance, and no wall seen in between (a thick wall's piece whose middle no ray reached)."""
     removed_evidence_share: float = Field(0.5, ge=0, le=1)
     """The share of a removed obstacle's cells that must show one of those two."""
     cluster_eps_m: float = Field(0.3, gt=0)

@@ -285,6 +285,7 @@ def removal_evidence(
     resolution: float,
     depth_m: float,
     see_through_m: float,
+    both_sides_m: float = 0.0,
 ) -> BoolArray:
     """Removed cells that show a structure is really gone, not a face eroded by grazing rays.
 
@@ -294,6 +295,12 @@ def removal_evidence(
     structure was). A strip along a wall's face has open space on one side only and no depth:
     rays skimming a wall seen end-on or from far away erode its face in the local map.
 
+    With ``both_sides_m`` > 0, a cell also counts when open space lies on both sides of it
+    within that distance along a line that crosses only the structure's cells the robot did not
+    see occupied: it saw the structure from both sides, free on each, and nowhere a wall in it (a
+    piece of a thick wall seen from the corridors on either side, its middle unseen). A face
+    seen from one side only has no open space behind it.
+
     Returns a new (H, W) bool array, True only on cells of ``removed``.
     """
     evidence = np.zeros(removed.shape, bool)
@@ -301,7 +308,8 @@ def removal_evidence(
     if w == 0:
         return evidence
     reach = max(1, round(see_through_m / resolution))
-    m = max(reach, math.ceil(depth_m / resolution) + 2)
+    across = round(both_sides_m / resolution)
+    m = max(reach, across, math.ceil(depth_m / resolution) + 2)
     r0, c0 = max(y - m, 0), max(x - m, 0)
     r1, c1 = min(y + h + m, removed.shape[0]), min(x + w + m, removed.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
@@ -320,8 +328,59 @@ def removal_evidence(
         seen_before = cv2.dilate(open_space, before) > 0
         seen_after = cv2.dilate(open_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
         found |= cand & seen_before & seen_after
+    if across > 0:
+        # Through the structure: its cells not seen occupied; across it, not along its face (a
+        # line through a face eroded a cell deep reaches open space at the structure's ends):
+        # the line passes a cell deeper inside than depth_m. And not the face's own row of
+        # cells, the one grazing rays erode.
+        rest = cand & ~found & (depth > 1.5 * resolution)
+        if rest.any():
+            passable = g_occ & (local_state[box] != OCCUPIED)
+            deep = depth >= depth_m
+            start = open_space > 0
+            # Each piece in a window around it (pieces lie far apart on a large map).
+            n, labels, stats, _ = cv2.connectedComponentsWithStats(rest.view(np.uint8))
+            for k in range(1, n):
+                px, py, pw, ph = (int(v) for v in stats[k, :4])
+                win = (
+                    slice(max(py - across, 0), py + ph + across),
+                    slice(max(px - across, 0), px + pw + across),
+                )
+                piece = labels[win] == k
+                for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+                    args = (start[win], passable[win], deep[win])
+                    ahead, ahead_deep = _reached(*args, (dr, dc), across)
+                    behind, behind_deep = _reached(*args, (-dr, -dc), across)
+                    found[win] |= piece & ahead & behind & (ahead_deep | behind_deep)
     evidence[box] = found
     return evidence
+
+
+def _reached(
+    start: BoolArray, passable: BoolArray, deep: BoolArray, step: tuple[int, int], n: int
+) -> tuple[BoolArray, BoolArray]:
+    """The cells reached from ``start`` in at most ``n`` steps of ``step`` (row, col), every
+    cell passed on the way (not the last) ``passable``; and those of them reached through a
+    ``deep`` cell."""
+    seen = np.zeros(start.shape, bool)
+    seen_deep = np.zeros(start.shape, bool)
+    front, front_deep = start, np.zeros(start.shape, bool)
+    dr, dc = step
+    h, w = start.shape
+    to = (slice(max(dr, 0), h + min(dr, 0)), slice(max(dc, 0), w + min(dc, 0)))
+    source = (slice(max(-dr, 0), h + min(-dr, 0)), slice(max(-dc, 0), w + min(-dc, 0)))
+    for _ in range(n):
+        moved = np.zeros(start.shape, bool)
+        moved_deep = np.zeros(start.shape, bool)
+        moved[to] = front[source]
+        moved_deep[to] = front_deep[source]
+        seen |= moved
+        seen_deep |= moved_deep
+        front = moved & passable
+        front_deep = (moved_deep | (front & deep)) & passable
+        if not front.any():
+            break
+    return seen, seen_deep
 
 
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:

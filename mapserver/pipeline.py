@@ -398,6 +398,7 @@ def _diff_masks(
         resolution=grid.resolution,
         depth_m=max(d.removed_depth_m, 2 * max(local.resolution, global_map.resolution)),
         see_through_m=d.see_through_m,
+        both_sides_m=d.both_sides_m,
     )
     return filtered, evidence
 

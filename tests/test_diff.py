@@ -346,3 +346,53 @@ def test_a_piece_closing_a_doorway_is_kept() -> None:
     # Within 0.45 m of a wall everywhere, but the nearest walls are on both sides.
     kept = drop_along_walls(added, walls, resolution=RES, within_m=0.45)
     assert np.array_equal(kept, added)
+
+
+def _thick_wall() -> tuple[np.ndarray, np.ndarray]:
+    """A wall 0.6 m thick (rows 20-31) across a 3 m x 3 m area at 0.05 m, corridors on both
+    sides; the robot saw both corridors free and the wall's faces, not its inside."""
+    g = np.full((60, 60), FREE, np.uint8)
+    g[20:32, :] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:20, :] = loc[32:, :] = FREE
+    loc[19, :] = loc[32, :] = FREE
+    loc[20, :] = loc[31, :] = OCCUPIED  # the faces, seen
+    return g, loc
+
+
+def test_a_piece_of_a_thick_wall_seen_gone_from_both_sides_is_evidence() -> None:
+    from mapserver.diff import removal_evidence
+
+    g, loc = _thick_wall()
+    # A 1 m piece removed: free seen 0.2 m deep from below, 0.1 m from above; its middle
+    # unseen, no wall anywhere in it.
+    loc[20:32, 20:40] = UNKNOWN
+    loc[28:32, 20:40] = FREE
+    loc[20:22, 20:40] = FREE
+    gone = (g == OCCUPIED) & (loc == FREE)
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35}
+    alone = removal_evidence(g, loc, gone, **kw)
+    assert alone.sum() < gone.sum() / 2  # the depth rule alone: not enough
+    both = removal_evidence(g, loc, gone, **kw, both_sides_m=1.0)
+    assert both.sum() > gone.sum() / 2 and not (both & ~gone).any()
+    # Seen from one side only (the other corridor unseen): only the depth rule's cells.
+    loc[:20, :] = UNKNOWN
+    loc[20:22, 20:40] = UNKNOWN
+    one_side = (g == OCCUPIED) & (loc == FREE)
+    assert np.array_equal(
+        removal_evidence(g, loc, one_side, **kw, both_sides_m=1.0),
+        removal_evidence(g, loc, one_side, **kw),
+    )
+
+
+def test_a_thick_wall_s_face_eroded_is_no_evidence_even_seen_from_both_sides() -> None:
+    from mapserver.diff import removal_evidence
+
+    g, loc = _thick_wall()
+    # No ray hit the faces (grazing), and they eroded a cell of the lower one over 1 m: open
+    # space on both sides, nothing seen occupied in between, yet only the face's own row.
+    loc[20, :] = loc[31, :] = UNKNOWN
+    loc[31, 20:40] = FREE
+    strip = (g == OCCUPIED) & (loc == FREE)
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35}
+    assert not removal_evidence(g, loc, strip, **kw, both_sides_m=1.0).any()
