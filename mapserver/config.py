@@ -92,6 +92,9 @@ class DiffConfig(_Frozen):
     removed_tolerance_m: float = Field(0.25, ge=0)
     """Removed cells must be this far from any wall the local map sees: rays grazing a wall get
     few hits and mark slivers of its face free."""
+    removed_end_tolerance_m: float = Field(0.2, ge=0)
+    """... but only this far past the end of a wall the robot sees, in line with it, where the
+    walls fit: a gap in a wall, not a wall seen off to one side."""
     min_removed_cells: int = Field(8, ge=1)
     """A removed obstacle must be seen free over at least this many local-map cells."""
     removed_depth_m: float = Field(0.15, ge=0)

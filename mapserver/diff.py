@@ -86,6 +86,7 @@ def raw_differences(
     global_walls: BoolArray | None = None,
     unknown_is_wall: bool = True,
     extra_tolerance_m: NDArray[np.float32] | None = None,
+    end_tolerance_m: float | None = None,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -112,6 +113,10 @@ def raw_differences(
     extra_tolerance_m
         Optional (H, W) float32 metres added to both tolerances, cell by cell, where the maps
         are known to fit less well (see :func:`misfit_tolerance`).
+    end_tolerance_m
+        Optional, smaller than the removed tolerance: the tolerance for removed cells past the
+        end of a local wall, in line with the global wall (a gap in a wall), where the walls
+        fit (no extra tolerance). The removed tolerance is for a wall seen off to one side.
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -148,11 +153,65 @@ def raw_differences(
             _keep_far(added, g_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
+        seen = removed.copy()
         removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
         if extra_tolerance_m is not None:
             _keep_far(removed, l_occ, removed_tol_m + extra_tolerance_m[box], resolution)
+        # The removed tolerance is for a wall seen off to one side of where it was drawn. Past
+        # the end of a local wall, in line with it (a gap in a wall), a smaller one will do.
+        end_px = (removed_tol_m if end_tolerance_m is None else end_tolerance_m) / resolution
+        ends = seen & ~removed & ~near(l_occ, ~(offset_distances(end_px) > end_px))
+        if extra_tolerance_m is not None:  # only where the walls fit: no drift left there
+            ends &= extra_tolerance_m[box] == 0
+        if ends.any():
+            reach_px = math.ceil(removed_tol_px + extra_m / resolution) + 2
+            # A wall's end: a wall seen over at least 0.3 m.
+            run = max(2, round(0.3 / resolution))
+            removed |= _past_wall_ends(ends, l_occ, g_occ, pad=reach_px, min_run=run)
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
+
+
+def _past_wall_ends(
+    cells: BoolArray, local_walls: BoolArray, global_walls: BoolArray, *, pad: int, min_run: int
+) -> BoolArray:
+    """The True cells of ``cells`` (inside global walls) whose nearest local wall lies along
+    the global wall from them, not across it: the direction to it is within 45 degrees of the
+    wall's own direction (across it, the wall's normal, points to the nearest cell outside the
+    global wall). A local wall across from a cell is the wall seen displaced; one along it is
+    the end of what still stands. ``pad``: how far (pixels) the nearest local wall may be."""
+    out = np.zeros(cells.shape, bool)
+    rows, cols = nonzero_cells(cells)
+    # Nearest local wall cell and nearest cell outside the global walls, on a box around them.
+    r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
+    r1 = min(int(rows.max()) + pad + 1, cells.shape[0])
+    c1 = min(int(cols.max()) + pad + 1, cells.shape[1])
+    box = (slice(r0, r1), slice(c0, c1))
+    rr, cc = rows - r0, cols - c0
+    vectors = []
+    for source in (~local_walls[box], global_walls[box]):
+        src = np.ascontiguousarray(source).view(np.uint8)
+        if src.all():  # nothing to measure to inside the box
+            return out
+        _, labels = cv2.distanceTransformWithLabels(
+            src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        zr, zc = np.nonzero(src == 0)  # label k is the k-th zero cell in raster order
+        k = labels[rr, cc] - 1
+        vectors.append((zr[k] - rr, zc[k] - cc))
+    (vr, vc), (nr, nc) = vectors
+    dot = np.abs(vr * nr + vc * nc).astype(np.float64)
+    norm = np.hypot(vr, vc) * np.hypot(nr, nc)
+    along = dot < np.cos(np.pi / 4) * np.maximum(norm, 1e-9)
+    # A wall's end, not a speck: the nearest local wall cell is part of a wall seen over at
+    # least ``min_run`` cells (sparse hits on a wall seen at range are no end of anything).
+    _, parts, stats, _ = cv2.connectedComponentsWithStats(
+        np.ascontiguousarray(local_walls[box]).view(np.uint8)
+    )
+    part = parts[rr + vr, cc + vc]
+    along &= stats[part, cv2.CC_STAT_AREA] >= min_run
+    out[rows[along], cols[along]] = True
+    return out
 
 
 def _keep_far(

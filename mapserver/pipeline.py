@@ -380,6 +380,7 @@ def _diff_masks(
         removed_tolerance_m=d.removed_tolerance_m,
         global_walls=structure,
         extra_tolerance_m=tolerance_map,
+        end_tolerance_m=d.removed_end_tolerance_m,
     )
     min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
     filtered = diff_stage.filter_noise(raw, min_pixels=min_px)

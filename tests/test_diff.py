@@ -396,3 +396,26 @@ def test_a_thick_wall_s_face_eroded_is_no_evidence_even_seen_from_both_sides() -
     strip = (g == OCCUPIED) & (loc == FREE)
     kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35}
     assert not removal_evidence(g, loc, strip, **kw, both_sides_m=1.0).any()
+
+
+def test_a_gap_in_a_wall_is_removed_up_to_the_smaller_end_tolerance() -> None:
+    g, loc, roi = _maps()
+    loc[44:56, 48:51] = FREE  # 0.6 m of the wall gone; its ends seen where drawn
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    side = raw_differences(g, loc, roi, **kw).removed
+    assert side.sum() == 2 * 3  # 0.25 m from both ends: two rows left of the gap
+    ends = raw_differences(g, loc, roi, **kw, end_tolerance_m=0.2).removed
+    assert ends.sum() == 4 * 3 and set(np.nonzero(ends)[0]) == {48, 49, 50, 51}
+
+
+def test_a_wall_seen_off_to_one_side_keeps_the_removed_tolerance() -> None:
+    g, loc, roi = _maps()
+    loc[:, 48:51] = FREE
+    loc[:, 53:56] = OCCUPIED  # the whole wall seen 0.25 m to the right: misalignment
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    assert not raw_differences(g, loc, roi, **kw, end_tolerance_m=0.2).removed.any()
+    # Sparse hits are no wall's end: a wall seen as specks 0.5 m apart, free between them.
+    loc[:, 53:56] = FREE
+    loc[::10, 48] = OCCUPIED
+    specks = raw_differences(g, loc, roi, **kw).removed
+    assert np.array_equal(raw_differences(g, loc, roi, **kw, end_tolerance_m=0.2).removed, specks)
