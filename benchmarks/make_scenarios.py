@@ -88,10 +88,12 @@ from mapserver.scoring import alignment_error, observed_centroid_xy
 
 MAPS_DIR = Path("/work/shared/maps")
 
-# Real lidar maps (short name -> YAML under MAPS_DIR). Not used: rmf_airport_terminal (a floor-plan
-# drawing, not a lidar map: its text and pastel fills would be "seen" as walls) and izs_campus
-# (an outdoor map at 0.25 m, far from the indoor robots this product serves).
+# Real maps (short name -> YAML under MAPS_DIR). rmf_airport_terminal is a floor-plan drawing,
+# not a lidar map: 1-pixel grey anti-aliased outlines at 0.082 m, pastel fills and grey label
+# boxes; its world (see lidar_world) has the outlines as walls and the fills as floor. Not
+# used: izs_campus (an outdoor map at 0.25 m, far from the indoor robots this product serves).
 REAL_MAPS = {
+    "rmf_airport_terminal": "rmf_airport_terminal/airport_terminal.yaml",
     "ipa_production_plant": "ipa_production_plant/map.yaml",
     "nav2_depot": "nav2_depot/depot.yaml",
     "aws_small_warehouse": "aws_small_warehouse/map.yaml",
@@ -142,6 +144,8 @@ class WorldSpec:
     ink: float = 1.0
     blur_px: float = 0.0
     roughen: bool = True
+    floorplan: bool = False
+    """A real map that is a floor-plan drawing: its world's walls are the drawn lines."""
 
 
 @dataclass(frozen=True)
@@ -361,6 +365,13 @@ CASES: dict[str, Case] = {
         changes=_counts((3, 6), (1, 3), 1),
         mislocalize=True,
     ),
+    # Floor-plan maps (thin grey outlines) with the prior 5-30 degrees and 0.5-2 m off.
+    "floorplan": Case(
+        (real("rmf_airport_terminal", floorplan=True), grey("office"), grey("airport")),
+        (30, 65),
+        session=_walkers(0, 1),
+        mislocalize=True,
+    ),
     # Not in the default list (a set's seed keeps making the same scenarios): ask for it with
     # --cases. A fleet's long sessions: 80-300 m, heading drift 0.05-0.1 deg/m, people walking.
     "drifting": Case(
@@ -372,7 +383,7 @@ CASES: dict[str, Case] = {
         changes=_counts((4, 8), (1, 3), 1),
     ),
 }
-DEFAULT_CASES = tuple(c for c in CASES if c != "drifting")
+DEFAULT_CASES = tuple(c for c in CASES if c not in ("drifting", "floorplan"))
 
 
 def scenario_seed(set_seed: int, index: int) -> int:
@@ -454,6 +465,23 @@ def lidar_world(m: OccupancyMap) -> OccupancyMap:
         wall = plateau + _GREY_WALL_SHARE * (255 - plateau)
         state[unknown & (occ >= wall)] = OCCUPIED
         state[unknown & (occ < wall) & (np.abs(occ - plateau) > _UNKNOWN_BAND)] = FREE
+    return from_states(state, m.resolution, (m.origin[0], m.origin[1], 0.0))
+
+
+def floorplan_world(m: OccupancyMap, *, ink: float = 0.35, line_contrast: int = 30) -> OccupancyMap:
+    """The world of a floor-plan drawing: every pixel drawn at least ``ink`` dark (label boxes,
+    icons) or on a line ``line_contrast`` darker than what lies beside it (outlines; not the
+    faintest, which the thresholds read as free: guide lines) is a wall, grown by a pixel all
+    round, and the rest (paper, pastel fills) is floor. Its outlines are 1-pixel anti-aliased grey lines that the trinary
+    thresholds read as unknown or free."""
+    occ = m.occupancy
+    # Dark areas (label boxes, icons) and every line drawn darker than what lies beside it.
+    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
+    lines = (hat >= line_contrast) & (m.state != FREE)  # not the faint ones read as free
+    drawn = ((occ >= round(ink * 255)) | lines).astype(np.uint8)
+    # A line drawn one pixel wide stands for a wall a few times as thick (0.25 m at 0.082 m).
+    walls = cv2.dilate(drawn, np.ones((3, 3), np.uint8)) > 0
+    state = np.where(walls, OCCUPIED, FREE).astype(np.uint8)
     return from_states(state, m.resolution, (m.origin[0], m.origin[1], 0.0))
 
 
@@ -565,7 +593,7 @@ def build_maps(
     if spec.kind == "real":
         path = Path(maps_dir) / REAL_MAPS[spec.name]
         original = _load_real(path)
-        world = lidar_world(original)
+        world = floorplan_world(original) if spec.floorplan else lidar_world(original)
         if spec.global_res_m is None:
             return world, GlobalMap.of(original, _copy_writer(path), path.name, str(path))
         base = from_states(original.state, original.resolution, world.origin)

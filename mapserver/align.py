@@ -133,17 +133,24 @@ class Alignment:
 
 
 def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
-    """Walls for alignment: occupied cells, and cells clearly darker than the map's unknown grey.
+    """Walls for alignment: occupied cells, cells clearly darker than the map's unknown grey,
+    and the walls a drawing shows as thin lines (:func:`drawn_walls`).
 
     Some maps draw walls as grey anti-aliased lines that read as unknown by the trinary rule;
     they still show where the walls are. Returns a new (H, W) bool array.
     """
-    occ = m.occupancy
-    counts = _histogram_where(occ, m.state == UNKNOWN)
+    return _structure(m, _drawn(m))
+
+
+def _structure(m: OccupancyMap, drawn: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
+    counts = _histogram_where(m.occupancy, m.state == UNKNOWN)
     unknown_level = int(np.argmax(counts)) if counts.any() else 127
     level = unknown_level + 0.2 * (255 - unknown_level)
     # occ >= level for whole numbers occ: an 8-bit comparison, not a float one per cell.
-    return np.asarray((m.state == OCCUPIED) | (occ >= np.uint8(math.ceil(level))), dtype=bool)
+    out = (m.state == OCCUPIED) | (m.occupancy >= np.uint8(math.ceil(level)))
+    if drawn is not None:
+        out |= drawn
+    return np.asarray(out, dtype=bool)
 
 
 def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArray[np.int64]:
@@ -160,6 +167,113 @@ def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArra
         )
         counts += part.reshape(-1).astype(np.int64)
     return counts
+
+
+def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], bool]:
+    """The occupancies a drawn line may have (clearly darker than anything read as free, not
+    the unknown grey), and whether more cells that are not black have them than cells are
+    black (a drawing, not a scan)."""
+    unknown_level = counts.unknown_level()
+    levels = np.arange(256)
+    grey = (np.abs(levels - unknown_level) > _UNKNOWN_BAND) & (
+        levels > min(counts.free_top() + _LINE_CONTRAST // 3, 254)
+    )
+    n_black = int(counts.occupied.sum())
+    return grey, int((counts.free + counts.unknown)[grey].sum()) > n_black
+
+
+def drawn_walls(m: OccupancyMap) -> NDArray[np.bool_]:
+    """The walls a floor-plan drawing shows as thin grey lines, as thick as a lidar sees them.
+
+    Floor plans draw walls one pixel wide and anti-aliased, often lighter than their grey label
+    boxes, on white or pastel fills that read as free; the trinary rule reads the lines as
+    unknown or free. A line is what a top-hat of the occupancy over a few pixels picks out:
+    clearly darker than what lies beside it, darker than anything the thresholds read as free,
+    not the unknown grey itself, and not the grey rim of a black wall. Only a drawing has them:
+    where such lines are fewer than the black wall cells (a scan, whose grey marks are its
+    uncertain cells), there are none. Each is grown by half a thin wall's thickness, where the
+    lidar sees the wall's faces. Returns a new (H, W) bool array.
+    """
+    drawn = _drawn(m)
+    return np.zeros(m.state.shape, bool) if drawn is None else drawn
+
+
+def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
+    """:func:`drawn_walls`, None when the map is no drawing."""
+    occ, state = m.occupancy, m.state
+    # A scan has few cells of a line's grey levels and a trinary map none: a look at every
+    # fourth row and column tells, before anything is counted exactly.
+    if not _grey_levels(_Levels.of(occ[::4, ::4], state[::4, ::4]))[1]:
+        return None
+    counts = _Levels.of(occ, state)
+    grey_levels, enough = _grey_levels(counts)
+    if not enough:
+        return None
+    n_black = int(counts.occupied.sum())
+    black = (m.state == OCCUPIED).view(np.uint8)
+    # The top-hat: what an opening over a few pixels takes away.
+    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, _LINE_KERNEL)
+    lines = (hat >= _LINE_CONTRAST) & grey_levels[occ] & (m.state != OCCUPIED)
+    lines &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
+    if np.count_nonzero(lines) <= n_black:
+        return None
+    grow = round(_LINE_HALF_WALL_M / m.resolution)
+    if grow > 0:
+        size = 2 * grow + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+        lines = cv2.dilate(lines.view(np.uint8), kernel).view(bool)
+    return np.asarray(lines, dtype=bool)
+
+
+# A line is at most a few pixels wide and at least this much darker (0..255 occupancy) than
+# what lies beside it; anti-aliasing and scan noise on a uniform fill stay well below.
+_LINE_KERNEL = np.ones((5, 5), np.uint8)
+_LINE_CONTRAST = 30
+# A drawn line shorter than this (its longer side) is a mark, not a wall.
+_LINE_MIN_LENGTH_M = 0.6
+# Half a wall's thickness (a thin one's): how far from a drawn line a lidar sees its faces.
+_LINE_HALF_WALL_M = 0.08
+# Occupancies this close to the unknown grey are that grey (resampled or re-encoded maps).
+_UNKNOWN_BAND = 3
+
+
+@dataclass(frozen=True)
+class _Levels:
+    """How many cells of a map have each occupancy (0..255), by state."""
+
+    free: NDArray[np.int64]
+    occupied: NDArray[np.int64]
+    unknown: NDArray[np.int64]
+
+    @staticmethod
+    def of(occ: NDArray[np.uint8], state: NDArray[np.uint8]) -> _Levels:
+        """In one pass (a 2-D histogram of occupancy and state), exact (cv2.calcHist counts in
+        float32: at most 2**24 cells a call)."""
+        occ, state = np.ascontiguousarray(occ), np.ascontiguousarray(state)
+        h, w = occ.shape
+        joint = np.zeros((256, 256), np.int64)
+        if w > _HIST_CHUNK:
+            np.add.at(joint, (occ.ravel(), state.ravel()), 1)
+        else:
+            step = _HIST_CHUNK // max(w, 1)
+            for r in range(0, h, step):
+                part = cv2.calcHist(
+                    [occ[r : r + step], state[r : r + step]],
+                    [0, 1],
+                    None,
+                    [256, 256],
+                    [0, 256, 0, 256],
+                )
+                joint += part.astype(np.int64)
+        return _Levels(joint[:, FREE], joint[:, OCCUPIED], joint[:, UNKNOWN])
+
+    def unknown_level(self) -> int:
+        """The map's unknown grey: the commonest occupancy of its unknown cells (127 if none)."""
+        return int(np.argmax(self.unknown)) if self.unknown.any() else 127
+
+    def free_top(self) -> int:
+        """The largest occupancy a free cell has (0 if none)."""
+        return int(np.flatnonzero(self.free)[-1]) if self.free.any() else 0
 
 
 def known_points(m: OccupancyMap, *, state: int | None = None) -> FloatArray:
@@ -244,8 +358,19 @@ def make_view(
         global_map.resolution,
         (crop_grid.x0, crop_grid.y0, 0.0),
     )
-    state = resample(crop.state, crop_grid, grid)
-    structure_u8 = structure_mask(crop).astype(np.uint8)
+    crop_state = crop.state
+    drawn = _drawn(crop)
+    structure_u8 = _structure(crop, drawn).astype(np.uint8)
+    if drawn is not None:
+        # A drawing's walls are walls, for the differences as for the search: a wall drawn
+        # and then seen gone is a removed one. Not its marks (a cross, a dot, a letter): the
+        # lines that run at least a while.
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
+        longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+        long_enough = longest * crop.resolution >= _LINE_MIN_LENGTH_M
+        long_enough[0] = False
+        crop_state = np.where(long_enough[labels], OCCUPIED, crop_state).astype(np.uint8)
+    state = resample(crop_state, crop_grid, grid)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
     return GlobalView(grid, state, structure, wall_reach_m)
 
@@ -792,6 +917,7 @@ __all__ = [
     "agreement",
     "align",
     "consistency",
+    "drawn_walls",
     "icp",
     "known_points",
     "make_view",

@@ -181,23 +181,50 @@ def _past_wall_ends(
     global wall). A local wall across from a cell is the wall seen displaced; one along it is
     the end of what still stands. ``pad``: how far (pixels) the nearest local wall may be."""
     out = np.zeros(cells.shape, bool)
-    rows, cols = nonzero_cells(cells)
-    # Nearest local wall cell and nearest cell outside the global walls, on a box around them.
-    r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
-    r1 = min(int(rows.max()) + pad + 1, cells.shape[0])
-    c1 = min(int(cols.max()) + pad + 1, cells.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
-    rr, cc = rows - r0, cols - c0
+    # Each group of cells in a window around it: they are few, and far apart on a large map.
+    bx, by, bw, bh = cv2.boundingRect(cells.view(np.uint8))
+    around = np.ascontiguousarray(cells[by : by + bh, bx : bx + bw]).view(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(around)
+    if n - 1 > _MAX_WINDOWS:  # one box around them all
+        labels, n = around.astype(np.int32), 2
+        stats = np.array([[0, 0, 0, 0, 0], [0, 0, bw, bh, 0]])
+    for k in range(1, n):
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        rows, cols = nonzero_cells(labels[y : y + h, x : x + w] == k)
+        x, y = x + bx, y + by  # the grid's cells from here on
+        r0, c0 = max(y - pad, 0), max(x - pad, 0)
+        box = (
+            slice(r0, min(y + h + pad, cells.shape[0])),
+            slice(c0, min(x + w + pad, cells.shape[1])),
+        )
+        rows, cols = rows + (y - r0), cols + (x - c0)
+        along = _along_in(rows, cols, local_walls[box], global_walls[box], min_run)
+        out[rows[along] + r0, cols[along] + c0] = True
+    return out
+
+
+# More groups of cells than this are looked at in one box around them all.
+_MAX_WINDOWS = 64
+
+
+def _along_in(
+    rr: NDArray[np.intp],
+    cc: NDArray[np.intp],
+    local_walls: BoolArray,
+    global_walls: BoolArray,
+    min_run: int,
+) -> NDArray[np.bool_]:
+    """:func:`_past_wall_ends` for the cells (rr, cc) of one window."""
     vectors = []
-    for source in (~local_walls[box], global_walls[box]):
+    for source in (~local_walls, global_walls):
         src = np.ascontiguousarray(source).view(np.uint8)
-        if src.all():  # nothing to measure to inside the box
-            return out
-        _, labels = cv2.distanceTransformWithLabels(
+        if src.all():  # nothing to measure to inside the window
+            return np.zeros(len(rr), bool)
+        _, nearest = cv2.distanceTransformWithLabels(
             src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
         )
         zr, zc = np.nonzero(src == 0)  # label k is the k-th zero cell in raster order
-        k = labels[rr, cc] - 1
+        k = nearest[rr, cc] - 1
         vectors.append((zr[k] - rr, zc[k] - cc))
     (vr, vc), (nr, nc) = vectors
     dot = np.abs(vr * nr + vc * nc).astype(np.float64)
@@ -206,12 +233,10 @@ def _past_wall_ends(
     # A wall's end, not a speck: the nearest local wall cell is part of a wall seen over at
     # least ``min_run`` cells (sparse hits on a wall seen at range are no end of anything).
     _, parts, stats, _ = cv2.connectedComponentsWithStats(
-        np.ascontiguousarray(local_walls[box]).view(np.uint8)
+        np.ascontiguousarray(local_walls).view(np.uint8)
     )
     part = parts[rr + vr, cc + vc]
-    along &= stats[part, cv2.CC_STAT_AREA] >= min_run
-    out[rows[along], cols[along]] = True
-    return out
+    return np.asarray(along & (stats[part, cv2.CC_STAT_AREA] >= min_run))
 
 
 def _keep_far(
@@ -486,30 +511,71 @@ def drop_along_walls(
     x, y, w, h = cv2.boundingRect(out.view(np.uint8))
     if w == 0 or not walls.any():
         return out
-    # Room for the reach, and for the nearest wall to be found inside the box.
+    # Room for the reach, and for the nearest wall to be found inside the window.
     m = math.ceil(within_m / resolution) + 2
-    r0, c0 = max(y - m, 0), max(x - m, 0)
-    box = (slice(r0, y + h + m), slice(c0, x + w + m))
-    part = out[box]
-    dist = distance_to(walls[box])
-    n, labels = cv2.connectedComponents(part.view(np.uint8), connectivity=8)
-    rows, cols = nonzero_cells(part)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        np.ascontiguousarray(out[y : y + h, x : x + w]).view(np.uint8)
+    )
+    # Each component in a window around it (they are few and small on a large map), or all in
+    # one box when they are many.
+    windows: list[tuple[int, int, int, int, list[int]]]
+    if n - 1 > _MAX_WINDOWS:
+        windows = [(0, 0, w, h, list(range(1, n)))]
+    else:
+        windows = [
+            (int(stats[k, 0]), int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]), [k])
+            for k in range(1, n)
+        ]
+    padded = np.pad(labels, m)  # a window's labels, whatever its place on the grid
+    for wx, wy, ww, wh, ks in windows:
+        # The window on the grid (clipped to it), and the same cells of ``padded``.
+        r0, c0 = max(y + wy - m, 0), max(x + wx - m, 0)
+        r1, c1 = min(y + wy + wh + m, out.shape[0]), min(x + wx + ww + m, out.shape[1])
+        lab = np.asarray(padded[r0 - y + m : r1 - y + m, c0 - x + m : c1 - x + m], np.int32)
+        if len(ks) == 1:
+            lab = np.where(lab == ks[0], lab, 0).astype(np.int32)
+        along = _along_one_wall(lab, walls[r0:r1, c0:c1], n, resolution, within_m, min_agreement)
+        out[r0:r1, c0:c1][along[lab] & (lab > 0)] = False
+    return out
+
+
+def _along_one_wall(
+    labels: NDArray[np.int32],
+    walls: BoolArray,
+    n: int,
+    resolution: float,
+    within_m: float,
+    min_agreement: float,
+) -> NDArray[np.bool_]:
+    """Per label (0..n-1) of ``labels`` (one window): whether its cells lie along one wall of
+    ``walls`` (see :func:`drop_along_walls`)."""
+    rows, cols = nonzero_cells(labels > 0)
     label = labels[rows, cols]
-    # The unit vectors away from the nearest wall (the distance field's gradient).
-    gx = cv2.Sobel(dist, cv2.CV_32F, 1, 0, ksize=3)[rows, cols]
-    gy = cv2.Sobel(dist, cv2.CV_32F, 0, 1, ksize=3)[rows, cols]
+    dist = distance_to(walls)
+    # The unit vectors away from the nearest wall: the distance field's gradient (a 3x3 Sobel),
+    # at the cells only.
+    d = np.pad(dist, 1, mode="reflect")
+    r, c = rows + 1, cols + 1
+    gx = (d[r - 1, c + 1] + 2 * d[r, c + 1] + d[r + 1, c + 1]) - (
+        d[r - 1, c - 1] + 2 * d[r, c - 1] + d[r + 1, c - 1]
+    )
+    gy = (d[r + 1, c - 1] + 2 * d[r + 1, c] + d[r + 1, c + 1]) - (
+        d[r - 1, c - 1] + 2 * d[r - 1, c] + d[r - 1, c + 1]
+    )
     norm = np.hypot(gx, gy)
     norm[norm == 0] = 1.0
     count = np.bincount(label, minlength=n).astype(np.float64)
     count[count == 0] = 1.0
     mean_x = np.bincount(label, gx / norm, minlength=n) / count
     mean_y = np.bincount(label, gy / norm, minlength=n) / count
-    farthest = np.zeros(n, np.float32)
-    np.maximum.at(farthest, label.astype(np.intp), dist[rows, cols])
+    farthest = np.full(n, np.inf, np.float32)
+    order = np.argsort(label, kind="stable")
+    sorted_labels = label[order]
+    starts = np.flatnonzero(np.r_[True, sorted_labels[1:] != sorted_labels[:-1]])
+    farthest[sorted_labels[starts]] = np.maximum.reduceat(dist[rows, cols][order], starts)
     along = (farthest * resolution <= within_m) & (np.hypot(mean_x, mean_y) >= min_agreement)
     along[0] = False
-    part[along[labels]] = False
-    return out
+    return np.asarray(along)
 
 
 def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:

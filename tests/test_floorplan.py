@@ -1,0 +1,161 @@
+"""Floor-plan maps: walls drawn as 1-pixel grey anti-aliased lines (an architectural plan turned
+into a map), which the trinary thresholds read as unknown or free. They must align as scanned
+maps do, and a wall drawn and then seen gone is a removed one (issue 12, item 2).
+
+The real drawing is a crop of the RMF airport terminal floor plan (tests/data/maps/SOURCES.md).
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from worlds import cut_local, offset
+
+from mapserver.align import drawn_walls, make_view, structure_mask
+from mapserver.bundle import sha256_file
+from mapserver.config import Config
+from mapserver.geometry import Transform2D
+from mapserver.grid import Grid
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states, load_map, save_map
+from mapserver.pipeline import process_bundle
+
+CROP = Path(__file__).parent / "data" / "maps" / "rmf_terminal_crop" / "terminal_crop.yaml"
+RES = 0.05
+
+
+def drawing(grey: np.ndarray, resolution: float = RES) -> OccupancyMap:
+    """A map read from a grey drawing (paper 254) as the loader reads it."""
+    p = (255 - grey.astype(np.float64)) / 255
+    state = np.full(grey.shape, UNKNOWN, np.uint8)
+    state[p < 0.196] = FREE
+    state[p > 0.65] = OCCUPIED
+    m = from_states(state, resolution, (0.0, 0.0, 0.0))
+    return OccupancyMap(state, np.rint(p * 255).astype(np.uint8), resolution, m.origin)
+
+
+def plan() -> np.ndarray:
+    """Paper with a 4 m outline drawn 1 px wide in mid grey (anti-aliased into the next row), a
+    grey label box, a faint guide line (read as free) and a small cross mark."""
+    g = np.full((120, 200), 254, np.uint8)
+    g[40, 20:100] = 150  # the outline ...
+    g[41, 20:100] = 215  # ... and its anti-aliasing
+    g[70:90, 120:160] = 128  # a label box: the commonest unknown grey
+    g[100, 10:190] = 228  # a guide line, read as free
+    g[60, 170:175] = 140  # a cross mark, 0.25 m
+    g[58:63, 172] = 140
+    return g
+
+
+def test_a_drawn_outline_is_a_wall_as_thick_as_a_lidar_sees_it() -> None:
+    m = drawing(plan())
+    walls = drawn_walls(m)
+    # The outline, grown by 0.08 m (2 px at 0.05 m) each side, along its whole length.
+    assert walls[38:43, 20:100].all()
+    assert not walls[35, 20:100].any() and not walls[45, 20:100].any()
+    # Not the label box's inside (the unknown grey), not the faint guide line.
+    assert not walls[75:85, 125:155].any()
+    assert not walls[100, 30:180].any()
+    # The trinary rule reads none of it as occupied: the alignment's walls come from here.
+    assert not (m.state == OCCUPIED).any()
+    assert structure_mask(m)[40, 20:100].all()
+
+
+def test_a_scan_s_grey_rims_and_unknown_are_no_drawn_walls() -> None:
+    # A scan: black walls with a grey rim, unknown (205) around, a strip of unknown in free.
+    g = np.full((120, 200), 205, np.uint8)
+    g[20:100, 20:180] = 254
+    g[50, 20:180] = 0
+    g[49, 20:180] = g[51, 20:180] = 150  # the rim: cells barely seen
+    g[80, 40:120] = 205  # a strip never seen
+    assert not drawn_walls(drawing(g)).any()
+
+
+def test_the_view_of_a_drawing_has_its_long_lines_as_walls_not_its_marks() -> None:
+    m = drawing(plan())
+    local = from_states(np.full((40, 40), FREE, np.uint8), RES, (4.0, 1.0, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    grid = view.grid
+    (c, r), (cc, rc) = np.rint(grid.to_pixel([[2.5, 3.975], [8.625, 2.975]])).astype(int)
+    assert view.state[r, c] == OCCUPIED  # on the outline
+    assert view.state[rc, cc] != OCCUPIED  # the cross: a mark, no wall
+    assert view.structure[rc, cc]  # though the search may use it
+
+
+def floorplan_world(m: OccupancyMap) -> OccupancyMap:
+    """What stands in a building drawn as ``m``: its outlines (not the faint guide lines the
+    thresholds read as free) and its dark boxes, walls a few pixels thick."""
+    occ = m.occupancy
+    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
+    drawn = (occ >= 89) | ((hat >= 30) & (m.state != FREE))
+    walls = cv2.dilate(drawn.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return from_states(np.where(walls, OCCUPIED, FREE).astype(np.uint8), m.resolution, m.origin)
+
+
+def edit(world: OccupancyMap, op: str, box: tuple[float, float, float, float]) -> OccupancyMap:
+    state = world.state.copy()
+    grid = Grid.of_map(world)
+    (c0, r1), (c1, r0) = np.rint(grid.to_pixel([box[:2], box[2:]])).astype(int)
+    state[r0 : r1 + 1, c0 : c1 + 1] = OCCUPIED if op == "add" else FREE
+    return from_states(state, world.resolution, world.origin)
+
+
+TRUE = Transform2D(0.6, 120.0, -30.0)
+CENTRE = (124.0, -39.5)  # the concourse between the shops, nav2 metres
+BOX = (126.5, -38.9, 127.3, -38.1)  # a new 0.8 m box in the concourse
+GONE = (114.5, -41.95, 117.0, -41.25)  # 2.5 m of a shop front's outline
+
+
+def bundle(tmp_path: Path, prior: Transform2D) -> Path:
+    plan_map = load_map(CROP)
+    now = edit(edit(floorplan_world(plan_map), "add", BOX), "clear", GONE)
+    cut = cut_local(now, centre_xy=CENTRE, radius_m=12.0, nav2_from_slam=TRUE, resolution=RES)
+    d = tmp_path / "plan-run"
+    d.mkdir()
+    shutil.copyfile(CROP, d / CROP.name)
+    shutil.copyfile(CROP.parent / "terminal_crop.png", d / "terminal_crop.png")
+    save_map(d / "slam_map.yaml", cut.local.state, cut.local.resolution, cut.local.origin)
+    slam = TRUE.inverse().apply(np.array(CENTRE))
+    nav2 = prior.apply(slam)
+    names = ["slam_map.yaml", "slam_map.pgm", CROP.name, "terminal_crop.png"]
+    manifest = {
+        "format": 1,
+        "robot": "test-01",
+        "stamp": "2026-11-21T10:15:00Z",
+        "slam_map": "slam_map.yaml",
+        "nav2_map": CROP.name,
+        "pose": {
+            "nav2": {"x": float(nav2[0]), "y": float(nav2[1]), "yaw": prior.theta},
+            "slam": {"x": float(slam[0]), "y": float(slam[1]), "yaw": 0.0},
+        },
+        "checksums": {n: sha256_file(d / n) for n in names},
+    }
+    (d / "bundle.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return d
+
+
+def inside(d: dict, box: tuple[float, float, float, float], grow: float) -> bool:
+    x, y = d["centroid"]["x"], d["centroid"]["y"]
+    return box[0] - grow <= x <= box[2] + grow and box[1] - grow <= y <= box[3] + grow
+
+
+@pytest.mark.parametrize("error_deg", [0.0, 20.0])
+def test_a_floor_plan_bundle_aligns_and_finds_a_new_box_and_a_wall_gone(
+    tmp_path: Path, error_deg: float
+) -> None:
+    prior = offset(TRUE, 0.8, -0.5, error_deg, CENTRE) if error_deg else TRUE
+    r = process_bundle(bundle(tmp_path, prior), Config()).result
+    a = r["alignment"]
+    assert a["trusted"] is True and a["score"] >= 0.6
+    assert math.degrees(abs(a["theta"] - TRUE.theta)) < 0.5
+    assert math.hypot(a["tx"] - TRUE.tx, a["ty"] - TRUE.ty) < 0.5
+    kinds = sorted(d["kind"] for d in r["differences"])
+    assert kinds == ["added", "removed"], r["differences"]
+    added = next(d for d in r["differences"] if d["kind"] == "added")
+    removed = next(d for d in r["differences"] if d["kind"] == "removed")
+    assert inside(added, BOX, 0.3) and inside(removed, GONE, 0.3)
