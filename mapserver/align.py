@@ -143,14 +143,19 @@ def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
 
 
 def _structure(m: OccupancyMap, drawn: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
-    counts = _histogram_where(m.occupancy, m.state == UNKNOWN)
-    unknown_level = int(np.argmax(counts)) if counts.any() else 127
+    unknown_level = _unknown_level(m)
     level = unknown_level + 0.2 * (255 - unknown_level)
     # occ >= level for whole numbers occ: an 8-bit comparison, not a float one per cell.
     out = (m.state == OCCUPIED) | (m.occupancy >= np.uint8(math.ceil(level)))
     if drawn is not None:
         out |= drawn
     return np.asarray(out, dtype=bool)
+
+
+def _unknown_level(m: OccupancyMap) -> int:
+    """The map's unknown grey: the commonest occupancy of its unknown cells (127 if none)."""
+    counts = _histogram_where(m.occupancy, m.state == UNKNOWN)
+    return int(np.argmax(counts)) if counts.any() else 127
 
 
 def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArray[np.int64]:
@@ -167,6 +172,22 @@ def _histogram_where(grey: NDArray[np.uint8], mask: NDArray[np.bool_]) -> NDArra
         )
         counts += part.reshape(-1).astype(np.int64)
     return counts
+
+
+def _median_ink(m: OccupancyMap, labels: NDArray[np.int32], n: int) -> NDArray[np.float64]:
+    """Per label 0..n-1: the median occupancy of its cells that are not read as free (a drawn
+    line's ink, without the paper around it); 0 where it has none."""
+    cells = (labels > 0) & (m.state != FREE)
+    label, ink = labels[cells], m.occupancy[cells]
+    out = np.zeros(n)
+    if label.size == 0:
+        return out
+    order = np.lexsort((ink, label))
+    label, ink = label[order], ink[order]
+    starts = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
+    ends = np.r_[starts[1:], label.size]
+    out[label[starts]] = ink[(starts + ends - 1) // 2]
+    return out
 
 
 def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], bool]:
@@ -364,12 +385,18 @@ def make_view(
     if drawn is not None:
         # A drawing's walls are walls, for the differences as for the search: a wall drawn
         # and then seen gone is a removed one. Not its marks (a cross, a dot, a letter): the
-        # lines that run at least a while.
+        # lines that run at least a while. And only lines drawn lighter than the unknown grey:
+        # darker ones are a scan's grey walls, blurred and noisy, which the search uses (they
+        # are darker than the unknown grey) but which no difference is measured against.
         _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-        long_enough = longest * crop.resolution >= _LINE_MIN_LENGTH_M
-        long_enough[0] = False
-        crop_state = np.where(long_enough[labels], OCCUPIED, crop_state).astype(np.uint8)
+        walls = longest * crop.resolution >= _LINE_MIN_LENGTH_M
+        walls &= (
+            _median_ink(crop, np.asarray(labels, np.int32), len(stats))
+            < _unknown_level(crop) - _UNKNOWN_BAND
+        )
+        walls[0] = False
+        crop_state = np.where(walls[labels], OCCUPIED, crop_state).astype(np.uint8)
     state = resample(crop_state, crop_grid, grid)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
     return GlobalView(grid, state, structure, wall_reach_m)

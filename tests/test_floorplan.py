@@ -159,3 +159,17 @@ def test_a_floor_plan_bundle_aligns_and_finds_a_new_box_and_a_wall_gone(
     added = next(d for d in r["differences"] if d["kind"] == "added")
     removed = next(d for d in r["differences"] if d["kind"] == "removed")
     assert inside(added, BOX, 0.3) and inside(removed, GONE, 0.3)
+
+
+def test_a_scan_s_grey_walls_serve_the_search_but_no_difference_is_measured_against_them() -> None:
+    # A scan whose walls came out grey (darker than its unknown grey, few black cells): the
+    # search uses them, but they are blurred and noisy, so they are not walls to see gone.
+    g = np.full((120, 200), 205, np.uint8)
+    g[20:100, 20:180] = 254
+    g[40, 20:180] = 150  # grey walls, 1 px
+    g[80, 20:180] = 150
+    m = drawing(g)
+    local = from_states(np.full((40, 40), FREE, np.uint8), RES, (4.0, 1.0, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    ((c, r),) = np.rint(view.grid.to_pixel([[5.0, 3.975]])).astype(int)
+    assert view.structure[r, c] and view.state[r, c] != OCCUPIED
