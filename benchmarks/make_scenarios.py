@@ -31,7 +31,7 @@ short           about 15 m
 airport         generated terminal: big halls, a grid of IDENTICAL columns (repeated structure)
 hospital        generated hospital ward: wide corridors, rows of similar rooms
 office          generated office floor
-mislocalized    the reported nav2 pose off by 0.5-2 m and 5-30 deg
+mislocalized    the reported nav2 pose off by 0.5-3 m and 5-30 deg
 scanner270      a 270-degree scanner (nothing seen behind the robot), various ranges
 coarse          global map at 0.08-0.1 m (reduced from the true world), local 0.05 m
 fine            global map at 0.02-0.03 m, local 0.05 m
@@ -254,7 +254,7 @@ class Case:
     drift: str = "mild"  # none | mild | strong, see _base_session
     session: Callable[[np.random.Generator, int], Params] | None = None  # extra session options
     changes: ChangesFn = _changes
-    mislocalize: bool = False  # the prior off by 0.5-2 m and 5-30 degrees
+    mislocalize: bool = False  # the prior off by 0.5-3 m and 5-30 degrees
 
 
 def _walkers(lo: int, hi: int) -> Callable[[np.random.Generator, int], Params]:
@@ -365,7 +365,7 @@ CASES: dict[str, Case] = {
         changes=_counts((3, 6), (1, 3), 1),
         mislocalize=True,
     ),
-    # Floor-plan maps (thin grey outlines) with the prior 5-30 degrees and 0.5-2 m off.
+    # Floor-plan maps (thin grey outlines) with the prior 5-30 degrees and 0.5-3 m off.
     "floorplan": Case(
         (real("rmf_airport_terminal", floorplan=True), grey("office"), grey("airport")),
         (30, 65),
@@ -415,7 +415,7 @@ def make_plans(
         session = _base_session(rng, drift=case.drift)
         session.update(case.session(rng, k) if case.session else {})
         session.update(overrides or {})
-        miss_m = _u(rng, 0.5, 2.0, 3) if case.mislocalize else 0.0
+        miss_m = _u(rng, 0.5, 3.0, 3) if case.mislocalize else 0.0
         miss_deg = _u(rng, 5.0, 30.0, 2) if case.mislocalize else 0.0
         robot = f"sim-{int(rng.integers(1, 5)):02d}"
         plans.append(
