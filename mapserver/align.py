@@ -397,6 +397,13 @@ def make_view(
         )
         walls[0] = False
         crop_state = np.where(walls[labels], OCCUPIED, crop_state).astype(np.uint8)
+    # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls
+    # for the differences too, a wall drawn and seen gone is removed; not their blurred rims.
+    grey_walls = (structure_u8 > 0) & (crop.state == UNKNOWN)
+    if grey_walls.any():
+        core = cv2.erode(grey_walls.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        if core.any():
+            crop_state = np.where(core, OCCUPIED, crop_state).astype(np.uint8)
     state = resample(crop_state, crop_grid, grid)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
     return GlobalView(grid, state, structure, wall_reach_m)

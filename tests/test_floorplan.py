@@ -173,3 +173,25 @@ def test_a_scan_s_grey_walls_serve_the_search_but_no_difference_is_measured_agai
     view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
     ((c, r),) = np.rint(view.grid.to_pixel([[5.0, 3.975]])).astype(int)
     assert view.structure[r, c] and view.state[r, c] != OCCUPIED
+
+
+def test_the_core_of_a_wall_drawn_grey_is_a_wall_for_the_differences_not_its_rim() -> None:
+    # A map whose walls are drawn grey, darker than its unknown grey (205 outside): a 0.5 m
+    # thick wall of flat grey ink, anti-aliased one pixel each side.
+    g = np.full((120, 200), 205, np.uint8)
+    g[20:100, 20:180] = 254
+    g[50:60, 20:180] = 110
+    g[49, 20:180] = g[60, 20:180] = 180
+    m = drawing(g)
+    assert not (m.state == OCCUPIED).any()  # the trinary rule reads the wall as unknown
+    local = from_states(np.full((40, 40), FREE, np.uint8), RES, (4.0, 1.0, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+
+    def at(y: float) -> tuple[int, int]:
+        ((c, r),) = np.rint(view.grid.to_pixel([[5.0, y]])).astype(int)
+        return r, c
+
+    assert view.state[at(6.0 - 0.05 * 55)] == OCCUPIED  # the wall's middle
+    edge = at(6.0 - 0.05 * 50.5)  # its outer row of ink
+    assert view.structure[edge] and view.state[edge] != OCCUPIED  # the search's, no more
+    assert view.state[at(6.0 - 0.05 * 49.5)] != OCCUPIED  # its anti-aliased rim
