@@ -47,6 +47,9 @@ class GlobalView:
     state: NDArray[np.uint8]
     structure: NDArray[np.bool_]
     wall_reach_m: float = 0.0
+    raw_state: NDArray[np.uint8] | None = None
+    """The map's own cell states where ``state`` has walls a drawing shows (grey lines, grey
+    walls' cores) made occupied; None when it has none (then it is ``state``)."""
 
     def near_walls(self, tolerance_m: float) -> NDArray[np.bool_]:
         """Cells within ``tolerance_m`` of a global wall: ``distance * resolution <=
@@ -96,11 +99,13 @@ class GlobalView:
         ``structure`` there, on the matching part of the grid, and no search fields. The later
         stages need only where the local map landed; the search needed room to move it."""
         r0, r1, c0, c1 = box
+        raw = self.raw_state
         return GlobalView(
             self.grid.crop(box),
             np.ascontiguousarray(self.state[r0:r1, c0:c1]),
             np.ascontiguousarray(self.structure[r0:r1, c0:c1]),
             self.wall_reach_m,
+            None if raw is None else np.ascontiguousarray(raw[r0:r1, c0:c1]),
         )
 
     def level(self, factor: int, pad: int) -> _Level:
@@ -324,9 +329,14 @@ def make_view(
     margin_m: float = 1.0,
     pivot_slam: tuple[float, float] | None = None,
     wall_reach_m: float = 0.0,
+    drawing: OccupancyMap | None = None,
 ) -> GlobalView:
     """Crop and resample the global map around where the prior puts the local map (a
     :class:`GlobalView` with ``wall_reach_m``).
+
+    ``drawing``: another map of the same lattice to read the drawn walls from, where its cell
+    states are the global map's (the stored map's version 1, a floor-plan drawing, when the
+    global map is a later version written by map_saver's rules, which keep only states).
 
     The work resolution is the finer of the two maps' resolutions, so that neither map loses
     detail. Only the crop is touched, never the whole global map. The crop holds the local map
@@ -379,9 +389,42 @@ def make_view(
         global_map.resolution,
         (crop_grid.x0, crop_grid.y0, 0.0),
     )
-    crop_state = crop.state
-    drawn = _drawn(crop)
-    structure_u8 = _structure(crop, drawn).astype(np.uint8)
+    source, same = crop, None
+    if drawing is not None and (drawing.width, drawing.height) == (
+        global_map.width,
+        global_map.height,
+    ):
+        source = OccupancyMap(
+            drawing.state[r0:r1, c0:c1],
+            drawing.occupancy[r0:r1, c0:c1],
+            drawing.resolution,
+            (crop_grid.x0, crop_grid.y0, 0.0),
+        )
+        same = source.state == crop.state  # not where a published change differs
+    structure_u8, walls = _drawn_structure(source, same)
+    if source is not crop:
+        structure_u8 |= _structure(crop, None).astype(np.uint8)
+    state = resample(crop.state, crop_grid, grid)
+    raw = None
+    if walls is not None:
+        raw = state
+        state = resample(np.where(walls, OCCUPIED, crop.state).astype(np.uint8), crop_grid, grid)
+    structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
+    return GlobalView(grid, state, structure, wall_reach_m, raw)
+
+
+def _drawn_structure(
+    m: OccupancyMap, same: NDArray[np.bool_] | None
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
+    """The alignment's walls of ``m`` (uint8 0/1), and the cells its drawing makes walls for
+    the differences (None if none), both only where ``same`` (when given)."""
+    drawn = _drawn(m)
+    if drawn is not None and same is not None:
+        drawn &= same
+    structure = _structure(m, drawn)
+    if same is not None:
+        structure &= same | (m.state == OCCUPIED)
+    walls = np.zeros(m.state.shape, bool)
     if drawn is not None:
         # A drawing's walls are walls, for the differences as for the search: a wall drawn
         # and then seen gone is a removed one. Not its marks (a cross, a dot, a letter): the
@@ -390,23 +433,21 @@ def make_view(
         # are darker than the unknown grey) but which no difference is measured against.
         _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-        walls = longest * crop.resolution >= _LINE_MIN_LENGTH_M
-        walls &= (
-            _median_ink(crop, np.asarray(labels, np.int32), len(stats))
-            < _unknown_level(crop) - _UNKNOWN_BAND
+        long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
+        long_lines &= (
+            _median_ink(m, np.asarray(labels, np.int32), len(stats))
+            < _unknown_level(m) - _UNKNOWN_BAND
         )
-        walls[0] = False
-        crop_state = np.where(walls[labels], OCCUPIED, crop_state).astype(np.uint8)
+        long_lines[0] = False
+        walls |= long_lines[labels]
     # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls
     # for the differences too, a wall drawn and seen gone is removed; not their blurred rims.
-    grey_walls = (structure_u8 > 0) & (crop.state == UNKNOWN)
+    grey_walls = structure & (m.state == UNKNOWN)
     if grey_walls.any():
-        core = cv2.erode(grey_walls.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
-        if core.any():
-            crop_state = np.where(core, OCCUPIED, crop_state).astype(np.uint8)
-    state = resample(crop_state, crop_grid, grid)
-    structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
-    return GlobalView(grid, state, structure, wall_reach_m)
+        walls |= cv2.erode(grey_walls.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    if same is not None:
+        walls &= same
+    return structure.astype(np.uint8), (walls if walls.any() else None)
 
 
 # --- scoring ---------------------------------------------------------------------------------
