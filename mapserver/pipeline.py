@@ -510,6 +510,23 @@ def process_bundle(
     # fields are built that wide from the start, for ICP and the drift estimate alike.
     drift_reach_m = 2 * settings.align.deform_max_shift_m + 0.5 if settings.align.deform else 0.0
 
+    # The stored map this bundle's global map is a version of (maps: set), looked up once:
+    # alignment reads a floor-plan drawing's walls from its version 1, the fleet update needs
+    # it after.
+    link_warnings: list[str] = []
+    link = (
+        _map_link(config.maps, files, global_map, bundle_dir, link_warnings)
+        if config.maps is not None
+        else None
+    )
+    drawing = None
+    if link is not None and link.bundle_version > 1:
+        drawing = GLOBAL_MAPS.load(
+            link.first_yaml,
+            link.first_yaml.parent / map_image_name(link.first_yaml),
+            max_pixels=config.max_image_pixels,
+        )
+
     def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
         robot = files.manifest.pose.slam.to_pose()
         pivot = (robot.x, robot.y)
@@ -528,6 +545,7 @@ def process_bundle(
                     margin_m=margin_m,
                     pivot_slam=pivot,
                     wall_reach_m=drift_reach_m,
+                    drawing=drawing,
                 )
             )
             return views[-1]
@@ -728,7 +746,7 @@ def process_bundle(
     if maps_root is not None:
 
         def _observe() -> Observation | None:
-            link = _map_link(maps_root, files, global_map, bundle_dir, warnings)
+            warnings.extend(link_warnings)
             if link is None:
                 return None
             if not compared:
@@ -746,8 +764,13 @@ def process_bundle(
                     max_pixels=config.max_image_pixels,
                 )
                 state = resample(current.state, Grid.of_map(current), grid)
-                same = state == view.state
+                own = view.state if view.raw_state is None else view.raw_state
+                same = state == own
                 structure = (view.structure & same) | (state == OCCUPIED)
+                if view.raw_state is not None:
+                    # The drawing's walls, where no published change has touched them.
+                    state = np.where(same & (view.state == OCCUPIED), OCCUPIED, state)
+                    state = state.astype(np.uint8)
                 fleet_masks, removal_current = _diff_masks(
                     state, structure, local_state, region.mask, grid, config, local, global_map
                 )

@@ -19,7 +19,8 @@ from worlds import cut_local, offset
 
 from mapserver.align import drawn_walls, make_view, structure_mask
 from mapserver.bundle import sha256_file
-from mapserver.config import Config
+from mapserver.config import Config, UpdateConfig
+from mapserver.fleet.store import FleetStore
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states, load_map, save_map
@@ -111,24 +112,27 @@ BOX = (126.5, -38.9, 127.3, -38.1)  # a new 0.8 m box in the concourse
 GONE = (114.5, -41.95, 117.0, -41.25)  # 2.5 m of a shop front's outline
 
 
-def bundle(tmp_path: Path, prior: Transform2D) -> Path:
+def bundle(tmp_path: Path, prior: Transform2D, global_yaml: Path = CROP) -> Path:
+    """A session in the terminal with the box added and the shop front gone, carrying
+    ``global_yaml`` (and the image it names) as the map it navigated on."""
     plan_map = load_map(CROP)
     now = edit(edit(floorplan_world(plan_map), "add", BOX), "clear", GONE)
     cut = cut_local(now, centre_xy=CENTRE, radius_m=12.0, nav2_from_slam=TRUE, resolution=RES)
     d = tmp_path / "plan-run"
     d.mkdir()
-    shutil.copyfile(CROP, d / CROP.name)
-    shutil.copyfile(CROP.parent / "terminal_crop.png", d / "terminal_crop.png")
+    image = yaml.safe_load(global_yaml.read_text())["image"]
+    shutil.copyfile(global_yaml, d / global_yaml.name)
+    shutil.copyfile(global_yaml.parent / image, d / image)
     save_map(d / "slam_map.yaml", cut.local.state, cut.local.resolution, cut.local.origin)
     slam = TRUE.inverse().apply(np.array(CENTRE))
     nav2 = prior.apply(slam)
-    names = ["slam_map.yaml", "slam_map.pgm", CROP.name, "terminal_crop.png"]
+    names = ["slam_map.yaml", "slam_map.pgm", global_yaml.name, image]
     manifest = {
         "format": 1,
         "robot": "test-01",
         "stamp": "2026-11-21T10:15:00Z",
         "slam_map": "slam_map.yaml",
-        "nav2_map": CROP.name,
+        "nav2_map": global_yaml.name,
         "pose": {
             "nav2": {"x": float(nav2[0]), "y": float(nav2[1]), "yaw": prior.theta},
             "slam": {"x": float(slam[0]), "y": float(slam[1]), "yaw": 0.0},
@@ -195,3 +199,39 @@ def test_the_core_of_a_wall_drawn_grey_is_a_wall_for_the_differences_not_its_rim
     edge = at(6.0 - 0.05 * 50.5)  # its outer row of ink
     assert view.structure[edge] and view.state[edge] != OCCUPIED  # the search's, no more
     assert view.state[at(6.0 - 0.05 * 49.5)] != OCCUPIED  # its anti-aliased rim
+
+
+def test_a_bundle_on_a_later_version_of_a_stored_drawing_aligns_on_the_drawing_s_lines(
+    tmp_path: Path,
+) -> None:
+    # Versions after the first are written by map_saver's rules: cell states only, the grey
+    # lines gone (205 like the label boxes, or free). A robot navigating on version 2 must
+    # still be aligned on the drawing, which the store keeps as version 1.
+    store = FleetStore(tmp_path / "maps", UpdateConfig(mode="auto"))
+    store.add_map("terminal", CROP)
+    store.rollback("terminal", 1)  # version 2: version 1's states, written by map_saver
+    v2 = tmp_path / "maps" / "terminal" / "v0002.yaml"
+    assert drawn_walls(load_map(v2)).sum() == 0 < drawn_walls(load_map(CROP)).sum()
+    config = Config(maps=tmp_path / "maps")
+    prior = offset(TRUE, 0.8, -0.5, 20.0, CENTRE)
+    outcome = process_bundle(bundle(tmp_path, prior, v2), config)
+    r = outcome.result
+    assert r["alignment"]["trusted"] is True, r["warnings"]
+    assert r["map"]["name"] == "terminal" and r["map"]["version"] == 2
+    assert sorted(d["kind"] for d in r["differences"]) == ["added", "removed"]
+    # The fleet's observation is judged against the current version (2) with the drawing's
+    # walls where no change touched them: the same two differences.
+    assert outcome.observation is not None
+    assert sorted(f.kind for f in outcome.observation.found) == ["added", "removed"]
+
+
+def test_a_bundle_on_the_drawing_is_judged_against_a_later_version_with_its_lines(
+    tmp_path: Path,
+) -> None:
+    store = FleetStore(tmp_path / "maps", UpdateConfig(mode="auto"))
+    store.add_map("terminal", CROP)
+    store.rollback("terminal", 1)
+    outcome = process_bundle(bundle(tmp_path, TRUE), Config(maps=tmp_path / "maps"))
+    assert outcome.result["map"]["version"] == 1
+    assert outcome.observation is not None and outcome.observation.judged_version == 2
+    assert sorted(f.kind for f in outcome.observation.found) == ["added", "removed"]

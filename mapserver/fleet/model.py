@@ -143,3 +143,6 @@ class MapLink:
     bundle_version: int
     current_version: int
     current_yaml: Path
+    first_yaml: Path
+    """Version 1: the building map as registered, byte for byte (a floor-plan drawing keeps its
+    grey lines there; later versions are written by map_saver's rules, states only)."""

@@ -93,12 +93,20 @@ def lookup(root: Path, image_sha256: str) -> MapLink | None:
             "SELECT version, yaml FROM versions WHERE map_id = ? ORDER BY version DESC LIMIT 1",
             (map_id,),
         ).fetchone()
+        (first_yaml,) = conn.execute(
+            "SELECT yaml FROM versions WHERE map_id = ? ORDER BY version LIMIT 1", (map_id,)
+        ).fetchone()
     except sqlite3.DatabaseError as error:
         raise StoreError(f"cannot read the map store: {error}", file=root) from None
     finally:
         conn.close()
     return MapLink(
-        name, Lattice(width, height, res, ox, oy), version, current, root / name / current_yaml
+        name,
+        Lattice(width, height, res, ox, oy),
+        version,
+        current,
+        root / name / current_yaml,
+        root / name / first_yaml,
     )
 
 
