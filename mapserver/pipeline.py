@@ -23,6 +23,7 @@ from mapserver import align as align_stage
 from mapserver import cluster as cluster_stage
 from mapserver import deform, piecewise, render, roi
 from mapserver import diff as diff_stage
+from mapserver import refit as refit_stage
 from mapserver.bundle import (
     MANIFEST,
     BundleFiles,
@@ -439,6 +440,37 @@ def _cluster_masks(
     return cluster_stage.sort_by_area(found)
 
 
+# The drift correction (metres) from which differences are checked by a local re-fit.
+_REFIT_DRIFT_M = 0.2
+
+
+def _refit(
+    differences: list[cluster_stage.Difference],
+    view: align_stage.GlobalView,
+    local_state: np.ndarray,
+    grid: Grid,
+    config: Config,
+) -> list[cluster_stage.Difference]:
+    """The differences a small local re-fit of the walls around them does not explain."""
+    d = config.pipeline.diff
+    global_walls = view.structure | (view.state == OCCUPIED)
+    local_walls = local_state == OCCUPIED
+    return [
+        diff
+        for diff in differences
+        if diff.cells is None
+        or not refit_stage.explained_by_refit(
+            diff.cells,
+            diff.kind,
+            global_walls,
+            local_walls,
+            resolution=grid.resolution,
+            tolerance_m=d.tolerance_m,
+            removed_tolerance_m=d.removed_tolerance_m,
+        )
+    ]
+
+
 def _map_link(
     maps_root: Path,
     files: BundleFiles,
@@ -685,6 +717,13 @@ def process_bundle(
     differences = stages.run(
         "cluster", lambda: _cluster_masks(masks, removal_evidence, grid, config, local)
     )
+    # After a drifting session (a drift correction of 0.2 m or more, or pieces), a difference
+    # that a small local re-fit of the walls around it explains is a wall seen twice.
+    refit = compared and (drift_m >= _REFIT_DRIFT_M or in_pieces)
+    if refit and differences:
+        differences = stages.run(
+            "refit", lambda: _refit(differences, view, local_state, grid, config)
+        )
 
     alignment_doc = {
         "theta": round(transform.theta, 6),
@@ -775,6 +814,8 @@ def process_bundle(
                     state, structure, local_state, region.mask, grid, config, local, global_map
                 )
                 found = _cluster_masks(fleet_masks, removal_current, grid, config, local)
+                if refit and found:
+                    found = _refit(found, view, local_state, grid, config)
             lattice = link.lattice
             window, occupied, free = observe.observed(local_state, grid, lattice)
             slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()
