@@ -53,15 +53,16 @@ from numpy.typing import ArrayLike, NDArray
 from mapserver.bundle import BUNDLE_ID_RE
 from mapserver.maps import OCCUPIED, OccupancyMap
 from mapserver.scoring import (
-    _ON_EDGE_M,
     CHANGE_KINDS,
+    ON_EDGE_M,
     STRUCTURAL_KINDS,
     ChangeId,
-    _as_polygon,
-    _check_format,
-    _field,
-    _kinded_items,
-    _mapping,
+    as_mapping,
+    as_polygon,
+    check_format,
+    field_of,
+    kinded_items,
+    parse_polygon,
     recall_from_counts,
 )
 
@@ -248,16 +249,6 @@ def _count(value: Any, where: str) -> int:
     return value
 
 
-def _polygon(value: Any, where: str) -> NDArray[np.float64]:
-    try:
-        polygon = _as_polygon(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where} must be a list of at least 3 [x, y] points") from None
-    if not np.isfinite(polygon).all():
-        raise ValueError(f"{where} must hold finite numbers")
-    return polygon
-
-
 def _erase(value: Any, where: str) -> NDArray[np.int64]:
     if not isinstance(value, list) or not value:
         raise ValueError(f"{where} must be a non-empty list of flat cell indices")
@@ -267,12 +258,12 @@ def _erase(value: Any, where: str) -> NDArray[np.int64]:
 
 
 def _change(i: int, where: str, item: Mapping[str, Any], kind: str) -> HistoryChange:
-    until = _field(item, "until", where)
+    until = field_of(item, "until", where)
     until = None if until is None else _time(until, f"{where}.until")
     since = _optional_time(item, "from", where)
     if since is not None and until is not None and until < since:
         raise ValueError(f"{where}: until ({until}) is before from ({since})")
-    sessions = _count(_field(item, "sessions", where), f"{where}.sessions")
+    sessions = _count(field_of(item, "sessions", where), f"{where}.sessions")
     seen_from = _optional_time(item, "seen_from", where)
     seen_until = _optional_time(item, "seen_until", where)
     if sessions and (seen_from is None or seen_until is None):
@@ -280,14 +271,14 @@ def _change(i: int, where: str, item: Mapping[str, Any], kind: str) -> HistoryCh
     if seen_from is not None and seen_until is not None and seen_until < seen_from:
         raise ValueError(f"{where}: seen_until ({seen_until}) is before seen_from ({seen_from})")
     if kind == "removed":
-        erase = _erase(_field(item, "erase", where), f"{where}.erase")
+        erase = _erase(field_of(item, "erase", where), f"{where}.erase")
     else:
         erase = np.empty(0, np.int64)
     shape = item.get("shape")
     return HistoryChange(
         id=item.get("id", i + 1),
         kind=kind,
-        polygon_xy=_polygon(_field(item, "polygon", where), f"{where}.polygon"),
+        polygon_xy=parse_polygon(field_of(item, "polygon", where), f"{where}.polygon"),
         until=until,
         sessions=sessions,
         seen_from=seen_from,
@@ -306,14 +297,14 @@ def parse_history(doc: Any) -> History:
     removed. ``id`` defaults to its position from 1; ``from`` and ``shape`` are optional; other
     keys are ignored. Raises ``ValueError`` naming the bad field.
     """
-    doc = _mapping(doc, "history")
-    _check_format(doc, "history")
-    name = _field(doc, "map", "history")
+    doc = as_mapping(doc, "history")
+    check_format(doc, "history")
+    name = field_of(doc, "map", "history")
     if not isinstance(name, str) or not BUNDLE_ID_RE.fullmatch(name):
         raise ValueError(f"history.map must be a map name ({BUNDLE_ID_RE.pattern}), got {name!r}")
     changes = [
         _change(i, where, item, kind)
-        for i, where, item, kind in _kinded_items(
+        for i, where, item, kind in kinded_items(
             doc.get("changes") or [], "history.changes", CHANGE_KINDS
         )
     ]
@@ -356,12 +347,12 @@ def polygon_mask(
     -------
     (H, W) bool, indexed [row, col], row 0 at the top.
     """
-    polygon = _as_polygon(polygon_xy)
+    polygon = as_polygon(polygon_xy)
     if not (grow_m >= 0 and math.isfinite(grow_m)):
         raise ValueError(f"grow_m must be a finite number >= 0, got {grow_m}")
     height, width = grid_map.state.shape
     mask = np.zeros((height, width), bool)
-    reach = grow_m + _ON_EDGE_M
+    reach = grow_m + ON_EDGE_M
     lo = polygon.min(axis=0) - reach
     hi = polygon.max(axis=0) + reach
     cols, rows = grid_map.world_to_pixel([lo[0], hi[0]], [hi[1], lo[1]])

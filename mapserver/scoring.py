@@ -54,7 +54,7 @@ CHANGE_KINDS = ("added", "removed", "temporary")
 
 # Points closer than this to a polygon's boundary are on it. Far below any map resolution; it only
 # absorbs the rounding of the point-segment projection.
-_ON_EDGE_M = 1e-9
+ON_EDGE_M = 1e-9
 
 Label = Literal["correct", "neutral", "false_positive"]
 ChangeId = int | str
@@ -201,10 +201,10 @@ class BundleScore(_Counts):
 
 
 # --------------------------------------------------------------------------------------------
-# Parsing
+# Parsing (the helpers history_scoring.py's parser shares are public)
 
 
-def _mapping(value: Any, where: str) -> Mapping[str, Any]:
+def as_mapping(value: Any, where: str) -> Mapping[str, Any]:
     if not isinstance(value, Mapping):
         raise ValueError(f"{where} must be a mapping, got {type(value).__name__}")
     return value
@@ -216,7 +216,7 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
-def _field(doc: Mapping[str, Any], key: str, where: str) -> Any:
+def field_of(doc: Mapping[str, Any], key: str, where: str) -> Any:
     if key not in doc:
         raise ValueError(f"{where}: missing key '{key}'")
     return doc[key]
@@ -224,11 +224,11 @@ def _field(doc: Mapping[str, Any], key: str, where: str) -> Any:
 
 def _numbers(value: Any, where: str, keys: tuple[str, ...]) -> tuple[float, ...]:
     """The finite numbers under ``keys`` of mapping ``value`` (found at ``where``)."""
-    doc = _mapping(value, where)
-    return tuple(_number(_field(doc, k, where), f"{where}.{k}") for k in keys)
+    doc = as_mapping(value, where)
+    return tuple(_number(field_of(doc, k, where), f"{where}.{k}") for k in keys)
 
 
-def _kinded_items(
+def kinded_items(
     raw: Any, where: str, kinds: tuple[str, ...]
 ) -> Iterator[tuple[int, str, Mapping[str, Any], str]]:
     """``(index, where, item, kind)`` of each mapping of list ``raw``, whose ``kind`` must be
@@ -237,11 +237,22 @@ def _kinded_items(
         raise ValueError(f"{where} must be a list")
     for i, value in enumerate(raw):
         at = f"{where}[{i}]"
-        item = _mapping(value, at)
-        kind = _field(item, "kind", at)
+        item = as_mapping(value, at)
+        kind = field_of(item, "kind", at)
         if kind not in kinds:
             raise ValueError(f"{at}.kind must be one of {kinds}, got {kind!r}")
         yield i, at, item, kind
+
+
+def parse_polygon(value: Any, where: str) -> NDArray[np.float64]:
+    """A polygon of a truth document (at ``where``): at least 3 finite [x, y] points."""
+    try:
+        polygon = as_polygon(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} must be a list of at least 3 [x, y] points") from None
+    if not np.isfinite(polygon).all():
+        raise ValueError(f"{where} must hold finite numbers")
+    return polygon
 
 
 def _transform(value: Any, where: str) -> Transform2D:
@@ -249,7 +260,7 @@ def _transform(value: Any, where: str) -> Transform2D:
     return Transform2D(theta, tx, ty)
 
 
-def _check_format(doc: Mapping[str, Any], what: str) -> None:
+def check_format(doc: Mapping[str, Any], what: str) -> None:
     version = doc.get("format", 1)
     if version != 1:
         raise ValueError(f"{what}: unsupported format {version!r}; this scorer reads format 1")
@@ -260,22 +271,15 @@ def parse_truth(doc: Any) -> Truth:
 
     Raises ``ValueError`` naming the bad field.
     """
-    doc = _mapping(doc, "truth")
-    _check_format(doc, "truth")
-    transform = _transform(_field(doc, "transform", "truth"), "truth.transform")
+    doc = as_mapping(doc, "truth")
+    check_format(doc, "truth")
+    transform = _transform(field_of(doc, "transform", "truth"), "truth.transform")
     changes = []
-    for i, where, item, kind in _kinded_items(
+    for i, where, item, kind in kinded_items(
         doc.get("changes") or [], "truth.changes", CHANGE_KINDS
     ):
-        try:
-            polygon = np.array(_field(item, "polygon", where), dtype=float)
-        except (TypeError, ValueError):
-            polygon = np.empty((0,))
-        if polygon.ndim != 2 or polygon.shape[0] < 3 or polygon.shape[1] != 2:
-            raise ValueError(f"{where}.polygon must be a list of at least 3 [x, y] points")
-        if not np.isfinite(polygon).all():
-            raise ValueError(f"{where}.polygon must hold finite numbers")
-        observed = _field(item, "observed", where)
+        polygon = parse_polygon(field_of(item, "polygon", where), f"{where}.polygon")
+        observed = field_of(item, "observed", where)
         if not isinstance(observed, bool):
             raise ValueError(f"{where}.observed must be true or false, got {observed!r}")
         changes.append(Change(item.get("id", i + 1), kind, polygon, observed))
@@ -290,25 +294,25 @@ def parse_result(doc: Any) -> Result:
     ``alignment`` (``theta``, ``tx``, ``ty``; optional) and ``timings_ms`` (optional).
     Raises ``ValueError`` naming the bad field.
     """
-    doc = _mapping(doc, "result")
-    _check_format(doc, "result")
-    status = _field(doc, "status", "result")
+    doc = as_mapping(doc, "result")
+    check_format(doc, "result")
+    status = field_of(doc, "status", "result")
     if not isinstance(status, str):
         raise ValueError(f"result.status must be a string, got {status!r}")
     timings = {
         str(k): _number(v, f"result.timings_ms.{k}")
-        for k, v in _mapping(doc.get("timings_ms") or {}, "result.timings_ms").items()
+        for k, v in as_mapping(doc.get("timings_ms") or {}, "result.timings_ms").items()
     }
     if status != "ok":
         return Result(status, timings_ms=timings)
     differences = []
-    for i, where, item, kind in _kinded_items(
-        _field(doc, "differences", "result") or [], "result.differences", STRUCTURAL_KINDS
+    for i, where, item, kind in kinded_items(
+        field_of(doc, "differences", "result") or [], "result.differences", STRUCTURAL_KINDS
     ):
-        x, y = _numbers(_field(item, "centroid", where), f"{where}.centroid", ("x", "y"))
+        x, y = _numbers(field_of(item, "centroid", where), f"{where}.centroid", ("x", "y"))
         centroid = (x, y)
         min_x, min_y, max_x, max_y = _numbers(
-            _field(item, "bbox", where), f"{where}.bbox", ("min_x", "min_y", "max_x", "max_y")
+            field_of(item, "bbox", where), f"{where}.bbox", ("min_x", "min_y", "max_x", "max_y")
         )
         bbox = (min_x, min_y, max_x, max_y)
         if bbox[0] > bbox[2] or bbox[1] > bbox[3]:
@@ -323,7 +327,7 @@ def parse_result(doc: Any) -> Result:
 # Geometry (closed polygons, even-odd rule)
 
 
-def _as_polygon(polygon_xy: ArrayLike) -> NDArray[np.float64]:
+def as_polygon(polygon_xy: ArrayLike) -> NDArray[np.float64]:
     polygon = np.asarray(polygon_xy, dtype=float)
     if polygon.ndim != 2 or polygon.shape[0] < 3 or polygon.shape[1] != 2:
         raise ValueError(f"polygon_xy must have shape (N >= 3, 2), got {polygon.shape}")
@@ -352,9 +356,9 @@ def point_in_polygon(point_xy: ArrayLike, polygon_xy: ArrayLike) -> bool:
     polygon_xy
         (N, 2) vertices, metres, N >= 3; the closing edge is implied.
     """
-    polygon = _as_polygon(polygon_xy)
+    polygon = as_polygon(polygon_xy)
     x, y = (float(v) for v in np.asarray(point_xy, dtype=float))
-    if _distance_to_boundary_m((x, y), polygon) <= _ON_EDGE_M:
+    if _distance_to_boundary_m((x, y), polygon) <= ON_EDGE_M:
         return True
     x0, y0 = polygon[:, 0], polygon[:, 1]
     x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
@@ -367,7 +371,7 @@ def point_in_polygon(point_xy: ArrayLike, polygon_xy: ArrayLike) -> bool:
 
 def point_polygon_distance_m(point_xy: ArrayLike, polygon_xy: ArrayLike) -> float:
     """Distance (metres) from a point to a closed polygon: 0 inside or on it, else to its boundary."""
-    polygon = _as_polygon(polygon_xy)
+    polygon = as_polygon(polygon_xy)
     if point_in_polygon(point_xy, polygon):
         return 0.0
     return _distance_to_boundary_m(point_xy, polygon)
@@ -385,7 +389,7 @@ def rect_intersects_polygon(
     polygon_xy
         (N, 2) vertices, metres.
     """
-    polygon = _as_polygon(polygon_xy)
+    polygon = as_polygon(polygon_xy)
     min_x, min_y, max_x, max_y = (float(v) for v in bbox_m)
     if min_x > max_x or min_y > max_y:
         raise ValueError(f"bbox_m must have min <= max, got {tuple(bbox_m)}")
@@ -414,7 +418,7 @@ def bbox_diagonal_m(bbox_m: Sequence[float]) -> float:
 
 def polygon_bbox_m(polygon_xy: ArrayLike) -> tuple[float, float, float, float]:
     """``(min_x, min_y, max_x, max_y)`` of a polygon's vertices."""
-    polygon = _as_polygon(polygon_xy)
+    polygon = as_polygon(polygon_xy)
     lo, hi = polygon.min(axis=0), polygon.max(axis=0)
     return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
