@@ -73,7 +73,6 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -1036,15 +1035,10 @@ def generate(
     """Write the histories of ``plans`` (see :func:`make_plans`) and ``set.yaml`` into
     ``out_dir``; returns the set entries (with the seconds each took, which set.yaml leaves out)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    work = [(plan, out_dir) for plan in plans]
-    if jobs > 1:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            entries = list(pool.map(_build_one, work))
-    else:
-        entries = [_build_one(w) for w in work]
-    doc: Params = {"format": 1, "set": out_dir.name, "seed": seed, "cases": list(cases)}
-    doc["scenarios"] = [{k: v for k, v in e.items() if k != "seconds"} for e in entries]
-    _dump(out_dir / "set.yaml", doc)
+    entries = scen.build_all(_build_one, [(plan, out_dir) for plan in plans], jobs)
+    scen.write_set(
+        out_dir, seed, cases, [{k: v for k, v in e.items() if k != "seconds"} for e in entries]
+    )
     return entries
 
 

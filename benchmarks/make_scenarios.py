@@ -942,19 +942,28 @@ def generate(
     """Write a set of ``count`` scenarios into ``out_dir``; returns the ``set.yaml`` entries."""
     plans = make_plans(seed, count, cases, overrides, maps_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    work = [(plan, out_dir) for plan in plans]
+    entries = build_all(_build_one, [(plan, out_dir) for plan in plans], jobs)
+    extra = {"overrides": _plain(overrides)} if overrides else {}
+    write_set(out_dir, seed, cases, entries, **extra)
+    return entries
+
+
+def build_all(build: Callable[[Any], Params], work: Sequence[Any], jobs: int) -> list[Params]:
+    """``build`` of each item of ``work``, in order, in ``jobs`` processes (or in this one)."""
     if jobs > 1:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            entries = list(pool.map(_build_one, work))
-    else:
-        entries = [_build_one(w) for w in work]
-    doc: Params = {"format": 1, "set": out_dir.name, "seed": seed, "cases": list(cases)}
-    if overrides:
-        doc["overrides"] = _plain(overrides)
-    doc["scenarios"] = entries
+            return list(pool.map(build, work))
+    return [build(w) for w in work]
+
+
+def write_set(
+    out_dir: Path, seed: int, cases: Sequence[str], entries: Sequence[Params], **extra: Any
+) -> None:
+    """``out_dir/set.yaml``: the set's name, seed and cases, ``extra``, and ``entries``."""
+    doc: Params = {"format": 1, "set": out_dir.name, "seed": seed, "cases": list(cases), **extra}
+    doc["scenarios"] = list(entries)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
     (out_dir / "set.yaml").write_text(text)
-    return entries
 
 
 def build_parser() -> argparse.ArgumentParser:
