@@ -3,10 +3,8 @@
 
 from __future__ import annotations
 
-import logging
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -19,15 +17,8 @@ from mapserver.cli import main
 from mapserver.config import parse_config
 from mapserver.lock import daemon_lock
 
-
-@pytest.fixture(autouse=True)
-def keep_logging() -> Iterator[None]:
-    """``process`` configures logging for the process: put pytest's back afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+# ``run`` and ``process`` configure logging for the process (see conftest.py).
+pytestmark = pytest.mark.usefixtures("keep_logging")
 
 
 def test_process_refuses_to_write_into_the_outbox_of_a_running_daemon(

@@ -3,26 +3,17 @@
 from __future__ import annotations
 
 import errno
-import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from mapserver.cli import main
 
-
-@pytest.fixture(autouse=True)
-def keep_logging() -> Iterator[None]:
-    """``run`` configures logging for the process: put pytest's back afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+# ``run`` and ``process`` configure logging for the process (see conftest.py).
+pytestmark = pytest.mark.usefixtures("keep_logging")
 
 
 def test_run_with_an_unreadable_configuration_exits_1(

@@ -4,9 +4,7 @@ more than before."""
 
 from __future__ import annotations
 
-import logging
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -29,14 +27,8 @@ LINE = re.compile(
 )
 
 
-@pytest.fixture(autouse=True)
-def keep_logging() -> Iterator[None]:
-    """``process`` configures logging for the process: put pytest's back afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
+# ``run`` and ``process`` configure logging for the process (see conftest.py).
+pytestmark = pytest.mark.usefixtures("keep_logging")
 
 
 def _banner_rows(png: bytes) -> int:
