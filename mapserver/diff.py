@@ -9,6 +9,7 @@ A wall seen within ``tolerance_m`` of where the other map has one is misalignmen
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -181,30 +182,42 @@ def _past_wall_ends(
     global wall). A local wall across from a cell is the wall seen displaced; one along it is
     the end of what still stands. ``pad``: how far (pixels) the nearest local wall may be."""
     out = np.zeros(cells.shape, bool)
-    # Each group of cells in a window around it: they are few, and far apart on a large map.
-    bx, by, bw, bh = cv2.boundingRect(cells.view(np.uint8))
-    around = np.ascontiguousarray(cells[by : by + bh, bx : bx + bw]).view(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(around)
-    if n - 1 > _MAX_WINDOWS:  # one box around them all
-        labels, n = around.astype(np.int32), 2
-        stats = np.array([[0, 0, 0, 0, 0], [0, 0, bw, bh, 0]])
-    for k in range(1, n):
-        x, y, w, h = (int(v) for v in stats[k, :4])
-        rows, cols = nonzero_cells(labels[y : y + h, x : x + w] == k)
-        x, y = x + bx, y + by  # the grid's cells from here on
-        r0, c0 = max(y - pad, 0), max(x - pad, 0)
-        box = (
-            slice(r0, min(y + h + pad, cells.shape[0])),
-            slice(c0, min(x + w + pad, cells.shape[1])),
-        )
-        rows, cols = rows + (y - r0), cols + (x - c0)
-        along = _along_in(rows, cols, local_walls[box], global_walls[box], min_run)
-        out[rows[along] + r0, cols[along] + c0] = True
+    for window, labels in _component_windows(cells, pad):
+        rows, cols = nonzero_cells(labels > 0)
+        along = _along_in(rows, cols, local_walls[window], global_walls[window], min_run)
+        out[window][rows[along], cols[along]] = True
     return out
 
 
-# More groups of cells than this are looked at in one box around them all.
+# More components than this are looked at in one window around them all.
 _MAX_WINDOWS = 64
+
+
+def _component_windows(
+    mask: BoolArray, pad: int
+) -> Iterator[tuple[tuple[slice, slice], NDArray[np.int32]]]:
+    """Each 8-connected component of ``mask`` in a window of ``pad`` cells around it (clipped
+    to the grid): the window, and there the component's label (> 0; 0 elsewhere, other
+    components included). They are few and far apart on a large map; when there are more
+    than ``_MAX_WINDOWS``, one window around them all, with all their labels."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    if w == 0:
+        return
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        np.ascontiguousarray(mask[y : y + h, x : x + w]).view(np.uint8)
+    )
+    padded = np.pad(labels, pad)  # a window's labels, whatever its place on the grid
+    groups = (
+        [(0, 0, w, h, 0)] if n - 1 > _MAX_WINDOWS else [(*stats[k, :4], k) for k in range(1, n)]
+    )
+    for wx, wy, ww, wh, k in groups:
+        r0, c0 = max(y + int(wy) - pad, 0), max(x + int(wx) - pad, 0)
+        r1 = min(y + int(wy) + int(wh) + pad, mask.shape[0])
+        c1 = min(x + int(wx) + int(ww) + pad, mask.shape[1])
+        window = np.asarray(padded[r0 - y + pad : r1 - y + pad, c0 - x + pad : c1 - x + pad])
+        if k:  # this component alone
+            window = np.where(window == k, window, 0)
+        yield (slice(r0, r1), slice(c0, c1)), window.astype(np.int32)
 
 
 def _along_in(
@@ -508,34 +521,14 @@ def drop_along_walls(
     nearest walls are on opposite sides): both are kept. Returns a new (H, W) bool array.
     """
     out = added.copy()
-    x, y, w, h = cv2.boundingRect(out.view(np.uint8))
-    if w == 0 or not walls.any():
+    if not walls.any():
         return out
     # Room for the reach, and for the nearest wall to be found inside the window.
     m = math.ceil(within_m / resolution) + 2
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        np.ascontiguousarray(out[y : y + h, x : x + w]).view(np.uint8)
-    )
-    # Each component in a window around it (they are few and small on a large map), or all in
-    # one box when they are many.
-    windows: list[tuple[int, int, int, int, list[int]]]
-    if n - 1 > _MAX_WINDOWS:
-        windows = [(0, 0, w, h, list(range(1, n)))]
-    else:
-        windows = [
-            (int(stats[k, 0]), int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]), [k])
-            for k in range(1, n)
-        ]
-    padded = np.pad(labels, m)  # a window's labels, whatever its place on the grid
-    for wx, wy, ww, wh, ks in windows:
-        # The window on the grid (clipped to it), and the same cells of ``padded``.
-        r0, c0 = max(y + wy - m, 0), max(x + wx - m, 0)
-        r1, c1 = min(y + wy + wh + m, out.shape[0]), min(x + wx + ww + m, out.shape[1])
-        lab = np.asarray(padded[r0 - y + m : r1 - y + m, c0 - x + m : c1 - x + m], np.int32)
-        if len(ks) == 1:
-            lab = np.where(lab == ks[0], lab, 0).astype(np.int32)
-        along = _along_one_wall(lab, walls[r0:r1, c0:c1], n, resolution, within_m, min_agreement)
-        out[r0:r1, c0:c1][along[lab] & (lab > 0)] = False
+    for window, labels in _component_windows(out, m):
+        n = int(labels.max()) + 1
+        along = _along_one_wall(labels, walls[window], n, resolution, within_m, min_agreement)
+        out[window][along[labels] & (labels > 0)] = False
     return out
 
 
