@@ -147,8 +147,11 @@ def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
     return _structure(m, _drawn(m))
 
 
-def _structure(m: OccupancyMap, drawn: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
-    unknown_level = _unknown_level(m)
+def _structure(
+    m: OccupancyMap, drawn: NDArray[np.bool_] | None, unknown_level: int | None = None
+) -> NDArray[np.bool_]:
+    if unknown_level is None:
+        unknown_level = _unknown_level(m)
     level = unknown_level + 0.2 * (255 - unknown_level)
     # occ >= level for whole numbers occ: an 8-bit comparison, not a float one per cell.
     out = (m.state == OCCUPIED) | (m.occupancy >= np.uint8(math.ceil(level)))
@@ -421,7 +424,8 @@ def _drawn_structure(
     drawn = _drawn(m)
     if drawn is not None and same is not None:
         drawn &= same
-    structure = _structure(m, drawn)
+    unknown_level = _unknown_level(m)
+    structure = _structure(m, drawn, unknown_level)
     if same is not None:
         structure &= same | (m.state == OCCUPIED)
     walls = np.zeros(m.state.shape, bool)
@@ -435,8 +439,7 @@ def _drawn_structure(
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
         long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
         long_lines &= (
-            _median_ink(m, np.asarray(labels, np.int32), len(stats))
-            < _unknown_level(m) - _UNKNOWN_BAND
+            _median_ink(m, np.asarray(labels, np.int32), len(stats)) < unknown_level - _UNKNOWN_BAND
         )
         long_lines[0] = False
         walls |= long_lines[labels]
