@@ -73,7 +73,8 @@ def explained_by_refit(
     if len(pr) < _MIN_POINTS:
         return False
     cap_px = 0.5 / resolution
-    field = np.minimum(distance_to(g), cap_px)
+    dist = distance_to(g)
+    field = np.minimum(dist, cap_px)
     centre_r, centre_c = float(rr.mean()), float(cc.mean())
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = np.meshgrid(steps, steps, indexing="ij")
@@ -102,7 +103,7 @@ def explained_by_refit(
 
     if kind == "added":
         mr, mc = moved(rr, cc)
-        near_wall = distance_to(g)[mr, mc] * resolution <= tolerance_m
+        near_wall = dist[mr, mc] * resolution <= tolerance_m
         return bool(near_wall.mean() >= _EXPLAINED_SHARE)
     # Removed: the local walls moved; do they now lie on the cells seen free?
     lr, lc = nonzero_cells(lw)
