@@ -411,10 +411,14 @@ def _cluster_masks(
     grid: Grid,
     config: Config,
     local: OccupancyMap,
+    *,
+    drifted: bool = False,
 ) -> list[cluster_stage.Difference]:
-    """The obstacles of the difference masks, largest first."""
+    """The obstacles of the difference masks, largest first. ``drifted``: the session drifted
+    (see ``_REFIT_DRIFT_M``), so the floor on their area is ``drifted_min_area_m2``."""
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
+    floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
     found = []
     for kind, mask, cells, evidence in (
         ("added", masks.added, d.min_local_cells, None),
@@ -425,7 +429,7 @@ def _cluster_masks(
             removal_evidence,
         ),
     ):
-        min_area = max(d.min_area_m2, cells * cell_m2)
+        min_area = max(floor_m2, cells * cell_m2)
         found += cluster_stage.cluster_mask(
             mask,
             grid,
@@ -714,12 +718,14 @@ def process_bundle(
         )
 
     masks, removal_evidence = stages.run("diff", _diff)
-    differences = stages.run(
-        "cluster", lambda: _cluster_masks(masks, removal_evidence, grid, config, local)
-    )
-    # After a drifting session (a drift correction of 0.2 m or more, or pieces), a difference
-    # that a small local re-fit of the walls around it explains is a wall seen twice.
+    # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are
+    # not reported, and a difference that a small local re-fit of the walls around it
+    # explains is a wall seen twice.
     refit = compared and (drift_m >= _REFIT_DRIFT_M or in_pieces)
+    differences = stages.run(
+        "cluster",
+        lambda: _cluster_masks(masks, removal_evidence, grid, config, local, drifted=refit),
+    )
     if refit and differences:
         differences = stages.run(
             "refit", lambda: _refit(differences, view, local_state, grid, config)
@@ -813,7 +819,9 @@ def process_bundle(
                 fleet_masks, removal_current = _diff_masks(
                     state, structure, local_state, region.mask, grid, config, local, global_map
                 )
-                found = _cluster_masks(fleet_masks, removal_current, grid, config, local)
+                found = _cluster_masks(
+                    fleet_masks, removal_current, grid, config, local, drifted=refit
+                )
                 if refit and found:
                     found = _refit(found, view, local_state, grid, config)
             lattice = link.lattice

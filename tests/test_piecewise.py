@@ -42,9 +42,11 @@ def test_route_pieces_cut_the_route_by_length() -> None:
         piecewise.route_pieces(route, piece_m=0)
 
 
-def _bent_bundle(directory: Path, bend_deg: float) -> Path:
+def _bent_bundle(
+    directory: Path, bend_deg: float, boxes: list[tuple[float, float, float, float]] = BOXES
+) -> Path:
     world = office(width_m=40.0, height_m=20.0, seed=3)
-    now = changed(world, [("add", *b) for b in BOXES])
+    now = changed(world, [("add", *b) for b in boxes])
     grid = Grid.of_map(world)
     # nav2_from_slam: identity west of the junction, turned by BEND_DEG about it east of it.
     bend = _turn_about(JUNCTION, bend_deg)
@@ -113,6 +115,45 @@ def test_a_map_bent_beyond_the_warp_is_compared_in_the_pieces_that_fit(tmp_path:
     assert len(found) == 1, r["differences"]
     # Nothing from the piece left out (the western box stays unreported).
     assert all(d["centroid"]["x"] > 12.0 for d in r["differences"])
+
+
+def _near(differences: list[dict], box: tuple[float, float, float, float]) -> list[dict]:
+    x0, y0, x1, y1 = box
+    return [
+        d
+        for d in differences
+        if d["kind"] == "added"
+        and abs(d["centroid"]["x"] - (x0 + x1) / 2) < 0.4
+        and abs(d["centroid"]["y"] - (y0 + y1) / 2) < 0.4
+    ]
+
+
+SPECK = (33.0, 2.0, 33.1, 2.1)  # 0.01 m2: 4 cells, min_local_cells
+
+
+def _with(config: Config, section: str, **update: object) -> Config:
+    part = getattr(config.pipeline, section).model_copy(update=update)
+    return config.model_copy(
+        update={"pipeline": config.pipeline.model_copy(update={section: part})}
+    )
+
+
+def test_after_a_drifting_session_specks_are_not_reported(tmp_path: Path) -> None:
+    """The same 0.1 m speck is a change in a session that fits, and is not reported after one
+    aligned in pieces (drifted_min_area_m2), while the boxes beside it are found in both."""
+    boxes = [*BOXES, SPECK]
+    config = _with(Config(), "align", fit_check=True)
+    straight = process_bundle(_bent_bundle(tmp_path / "straight", 0.0, boxes), config).result
+    assert "pieces" not in straight["alignment"]
+    assert all(len(_near(straight["differences"], b)) == 1 for b in boxes)
+
+    bent = _bent_bundle(tmp_path / "bent", 12.0, boxes)
+    r = process_bundle(bent, config).result
+    assert r["alignment"]["pieces"] == 2 and r["alignment"]["trusted"] is True
+    assert all(len(_near(r["differences"], b)) == 1 for b in BOXES)
+    assert _near(r["differences"], SPECK) == []
+    no_floor = _with(config, "diff", drifted_min_area_m2=0.0)
+    assert len(_near(process_bundle(bent, no_floor).result["differences"], SPECK)) == 1
 
 
 @pytest.mark.parametrize("bend_deg", [9.0, 12.0, 15.0])
