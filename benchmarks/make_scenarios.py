@@ -41,6 +41,8 @@ grey            grey anti-aliased walls: willow maps as they are, or a generated
 real            the other lidar maps of /work/shared/maps, as they are (their own image files)
 combo           several at once: drift, walkers, a 270-degree scanner, a wrong prior
 drifting        (only with --cases) 80-300 m, heading drift 0.05-0.1 deg/m, 1-4 walkers
+wandering       (only with --cases) the same, the heading error a random walk of 0.03-0.1
+                deg per square-root metre (how shared/bench/public-realism's sessions drift)
 ==============  =============================================================================
 
 How the global map relates to the simulated world:
@@ -204,6 +206,12 @@ def _base_session(rng: np.random.Generator, *, drift: str = "mild") -> Params:
     elif drift == "severe":
         params["drift_yaw_deg_per_m"] = _u(rng, 0.05, 0.1)
         params["drift_scale"] = _u(rng, 0.002, 0.006, 5)
+    elif drift == "walk":
+        # The heading error a random walk of 0.03-0.1 deg per square-root metre: it wanders and
+        # partly cancels, as in shared/bench/public-realism's long sessions.
+        params["drift_yaw_deg_per_m"] = _u(rng, 0.03, 0.1)
+        params["drift_scale"] = _u(rng, 0.002, 0.006, 5)
+        params["drift_walk"] = True
     return params
 
 
@@ -251,7 +259,7 @@ class Case:
 
     worlds: tuple[WorldFn, ...]
     route_m: tuple[float, float]
-    drift: str = "mild"  # none | mild | strong, see _base_session
+    drift: str = "mild"  # none | mild | strong | severe | walk, see _base_session
     session: Callable[[np.random.Generator, int], Params] | None = None  # extra session options
     changes: ChangesFn = _changes
     mislocalize: bool = False  # the prior off by 0.5-3 m and 5-30 degrees
@@ -382,8 +390,18 @@ CASES: dict[str, Case] = {
         session=_walkers(1, 4),
         changes=_counts((4, 8), (1, 3), 1),
     ),
+    # Also only with --cases: the same long sessions, drifting the way the public-realism set's
+    # do (the heading error a random walk, not a bias).
+    "wandering": Case(
+        _worlds("airport", "hospital", "ipa_production_plant", "willow_full", "office")
+        + _worlds("mit_stata_basement", "nav2_warehouse"),
+        (80, 300),
+        drift="walk",
+        session=_walkers(1, 4),
+        changes=_counts((4, 8), (1, 3), 1),
+    ),
 }
-DEFAULT_CASES = tuple(c for c in CASES if c not in ("drifting", "floorplan"))
+DEFAULT_CASES = tuple(c for c in CASES if c not in ("drifting", "floorplan", "wandering"))
 
 
 def scenario_seed(set_seed: int, index: int) -> int:

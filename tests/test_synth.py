@@ -14,6 +14,7 @@ from mapserver.bundle import check_bundle_files, read_manifest
 from mapserver.errors import BundleIncomplete
 from mapserver.geometry import Transform2D
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, load_map
+from mapserver.synth.session import _drifted
 
 
 @pytest.fixture(scope="module")
@@ -247,6 +248,26 @@ def test_drift_bends_the_far_end_and_the_truth_is_the_best_fit(airport: Occupanc
     # Anchored at the start the far end is off; the best fit keeps the whole map close.
     occupied, _ = agreement(sc, tolerance_px=3)
     assert occupied >= 0.9
+
+
+def test_a_random_walk_heading_drift_wanders_where_a_bias_keeps_turning() -> None:
+    # 100 m east in 1 m steps, estimated from the slam frame's anchor at the start.
+    true = np.stack([np.arange(101.0), np.zeros(101), np.zeros(101)], axis=1)
+    anchor = Transform2D(0.0, 0.0, 0.0)
+    rate = math.radians(0.1)
+    bias = _drifted(true, anchor, rate, 1.0)
+    assert bias[-1, 2] == pytest.approx(100 * rate)
+    # Draws of +1 every 1 m step turn as the bias does (sqrt(1) = 1); alternating ones cancel.
+    same = _drifted(true, anchor, rate, 1.0, np.ones(100))
+    assert np.allclose(same, bias)
+    back_and_forth = _drifted(true, anchor, rate, 1.0, np.tile([1.0, -1.0], 50))
+    assert back_and_forth[-1, 2] == pytest.approx(0.0, abs=1e-12)
+    # Sideways: the bias bends the route by metres, the wandering heading by centimetres.
+    assert np.abs(back_and_forth[:, 1]).max() < 0.1
+    assert np.abs(bias[:, 1]).max() > 5.0
+    # Steps of 0.25 m: each turns by the rate times 0.5 (the square root of its length).
+    fine = np.stack([np.arange(0.0, 1.01, 0.25), np.zeros(5), np.zeros(5)], axis=1)
+    assert _drifted(fine, anchor, rate, 1.0, np.ones(4))[-1, 2] == pytest.approx(4 * 0.5 * rate)
 
 
 def test_walkers_leave_only_a_few_occupied_cells(office: OccupancyMap) -> None:

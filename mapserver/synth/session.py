@@ -177,9 +177,12 @@ def _drifted(
     nav2_from_slam: Transform2D,
     yaw_rate_rad_per_m: float,
     scale: float,
+    yaw_walk: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """SLAM estimates (N, 3) of true nav2 poses (N, 3): each step's motion, seen from the previous
-    pose, is scaled by ``scale`` and turned by ``yaw_rate`` times its length."""
+    pose, is scaled by ``scale`` and turned by ``yaw_rate`` times its length, or, with
+    ``yaw_walk`` (N - 1,) given, by ``yaw_rate`` times the square root of its length times the
+    step's ``yaw_walk`` (standard normal draws: the heading error a random walk)."""
     slam_from_nav2 = nav2_from_slam.inverse()
     q_xy = slam_from_nav2.apply(true_xy_yaw[:, :2])
     q_yaw = true_xy_yaw[:, 2] - nav2_from_slam.theta
@@ -193,7 +196,12 @@ def _drifted(
         est[i, 0] = est[i - 1, 0] + scale * (ce * fx - se * fy)
         est[i, 1] = est[i - 1, 1] + scale * (se * fx + ce * fy)
         turn = wrap_angle(q_yaw[i] - q_yaw[i - 1])
-        est[i, 2] = est[i - 1, 2] + turn + yaw_rate_rad_per_m * math.hypot(dx, dy)
+        step = math.hypot(dx, dy)
+        if yaw_walk is None:
+            error = yaw_rate_rad_per_m * step
+        else:
+            error = yaw_rate_rad_per_m * math.sqrt(step) * float(yaw_walk[i - 1])
+        est[i, 2] = est[i - 1, 2] + turn + error
     return est
 
 
@@ -277,6 +285,7 @@ def simulate_session(
     slam_resolution: float = 0.05,
     drift_yaw_deg_per_m: float = 0.0,
     drift_scale: float = 0.0,
+    drift_walk: bool = False,
     slam_xy_m: float = 0.0,
     slam_yaw_deg: float = 0.0,
     walkers: int = 0,
@@ -299,7 +308,11 @@ def simulate_session(
 
     The SLAM estimate starts exactly at the slam frame's anchor and integrates the true motion with
     a scale error (``1 +- drift_scale``) and a heading error of ``+-drift_yaw_deg_per_m`` per metre
-    travelled (signs random), so a long route bends; each scan is inserted at the estimate plus
+    travelled (signs random), so a long route bends. With ``drift_walk`` the heading error is a
+    random walk instead, ``drift_yaw_deg_per_m`` per square-root metre (a standard deviation): it
+    wanders and partly cancels, as in the long sessions of ``shared/bench/public-realism``
+    (their routes of 56-96 m end 0.03-1.4 degrees off, bent by at most 0.05-0.4 m against the
+    best rigid fit). Each scan is inserted at the estimate plus
     independent registration noise (``slam_xy_m``, ``slam_yaw_deg``, standard deviations). The
     local grid counts, per cell, the beams ending in it (hits) and passing through it (passes):
     occupied when ``hits >= occupied_ratio * (hits + passes)`` and hits > 0, free when only
@@ -369,7 +382,8 @@ def simulate_session(
     # The SLAM estimate of every route pose.
     yaw_rate = math.radians(drift_yaw_deg_per_m) * (1 if rng.random() < 0.5 else -1)
     scale = 1.0 + drift_scale * (1 if rng.random() < 0.5 else -1)
-    est = _drifted(true, anchor, yaw_rate, scale)
+    walk = rng.standard_normal(max(len(route) - 1, 0)) if drift_walk else None
+    est = _drifted(true, anchor, yaw_rate, scale, walk)
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(true[:, :2], axis=0).T))])
     times = travelled / robot_speed_mps
     scans = np.array(sorted(set(range(0, len(route), scan_every)) | {len(route) - 1}))
