@@ -30,6 +30,8 @@ BoolArray = NDArray[np.bool_]
 _EXPLAINED_SHARE = 0.8
 # Local wall cells the fit needs in its window.
 _MIN_POINTS = 30
+# Mean distance (pixels) a fit pays per pixel it moves, to break the ties of a slide.
+_SLIDE_COST = 0.05
 
 
 def explained_by_refit(
@@ -79,6 +81,10 @@ def explained_by_refit(
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = np.meshgrid(steps, steps, indexing="ij")
     dy, dx = dy.ravel()[:, None], dx.ravel()[:, None]
+    # A wall slides along itself at no cost: of the fits about as good, a removed difference
+    # takes the smallest move (sliding the walls either side of a gap over it explains nothing;
+    # for an added one, the fit's slide along the wall does not matter).
+    slide_cost = _SLIDE_COST * np.hypot(dy, dx)[:, 0] if kind == "removed" else 0.0
     best = (np.inf, 0.0, 0.0, 0.0)
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
         ct, st = math.cos(turn), math.sin(turn)
@@ -86,7 +92,7 @@ def explained_by_refit(
         qc = centre_c + (pr - centre_r) * st + (pc - centre_c) * ct
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
-        cost = field[ir, ic].mean(axis=1)
+        cost = field[ir, ic].mean(axis=1) + slide_cost
         k = int(np.argmin(cost))
         if cost[k] < best[0]:
             best = (float(cost[k]), turn, float(dy[k, 0]), float(dx[k, 0]))

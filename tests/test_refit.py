@@ -55,3 +55,20 @@ def test_a_wall_gone_stays_gone_and_a_wall_only_moved_is_explained() -> None:
     # The whole room seen 0.35 m off: the partition's cells are free in the local map only
     # because its wall was drawn off with the rest.
     assert explained_by_refit(cells(partition), "removed", glob, room(shift_px=7), **KW)
+
+
+def test_a_gap_in_a_straight_wall_is_not_explained_by_sliding_the_wall_over_it() -> None:
+    """A 0.8 m piece of a long straight wall gone, the wall either side seen where it is drawn:
+    sliding those walls 0.4 m along themselves fits them as well and would cover the gap, but
+    a wall seen where it is drawn has not moved."""
+    glob = np.zeros((120, 200), bool)
+    glob[60, 10:190] = True
+    gap = np.zeros(glob.shape, bool)
+    gap[60, 92:108] = True
+    local = glob & ~gap
+    assert not explained_by_refit(cells(gap), "removed", glob, local, **KW)
+    # The same wall seen 0.35 m off across itself: the gap's cells are free only because of
+    # that, and the re-fit that moves it back explains them.
+    off = np.roll(glob, 7, axis=0) & ~np.roll(gap, 7, axis=0)
+    off_gap = gap & ~off
+    assert explained_by_refit(cells(off_gap), "removed", glob, off | np.roll(gap, 7, axis=0), **KW)
