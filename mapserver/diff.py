@@ -398,6 +398,10 @@ def removal_evidence(
     piece of a thick wall seen from the corridors on either side, its middle unseen). A face
     seen from one side only has no open space behind it.
 
+    Either way, a cell counts only when the robot could have seen it: connected to open space
+    through cells seen free, not across a wall seen standing (a solid block whose faces are
+    seen all round, its inside free only in a part of a drifted map laid over it).
+
     Returns a new (H, W) bool array, True only on cells of ``removed``.
     """
     evidence = np.zeros(removed.shape, bool)
@@ -449,8 +453,33 @@ def removal_evidence(
                     ahead, ahead_deep = _reached(*args, (dr, dc), across)
                     behind, behind_deep = _reached(*args, (-dr, -dc), across)
                     found[win] |= piece & ahead & behind & (ahead_deep | behind_deep)
+    # Nothing behind a face seen standing: the robot saw a cell free only along a ray that
+    # came from open space; where the face between them is seen intact, the free cells inside
+    # came from a part of the local map laid over the wrong place, not from a ray.
+    found &= _reached_from_open_space(global_state[box], local_state[box], resolution)
     evidence[box] = found
     return evidence
+
+
+# Gaps between the hits on a face seen from afar that rays did not pass through.
+_FACE_GAP_M = 0.1
+
+
+def _reached_from_open_space(
+    global_state: NDArray[np.uint8], local_state: NDArray[np.uint8], resolution: float
+) -> BoolArray:
+    """Cells connected to open space (free in both maps) through cells the local map sees
+    free, without crossing a wall it sees (its hits grown by ``_FACE_GAP_M``, closing the
+    gaps between sparse hits on one face). (H, W) bool."""
+    k = max(1, round(_FACE_GAP_M / resolution))
+    walls = (local_state == OCCUPIED).view(np.uint8)
+    barrier = cv2.dilate(walls, np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0
+    passable = (local_state == FREE) & ~barrier
+    n, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
+    reached = np.zeros(n, bool)
+    reached[labels[passable & (global_state == FREE)]] = True
+    reached[0] = False  # the barrier, and everything not seen free
+    return np.asarray(reached[labels])
 
 
 def _reached(

@@ -419,3 +419,23 @@ def test_a_wall_seen_off_to_one_side_keeps_the_removed_tolerance() -> None:
     loc[::10, 48] = OCCUPIED
     specks = raw_differences(g, loc, roi, **kw).removed
     assert np.array_equal(raw_differences(g, loc, roi, **kw, end_tolerance_m=0.2).removed, specks)
+
+
+def test_free_cells_behind_a_face_seen_standing_are_no_evidence() -> None:
+    """A solid block 1 m deep whose faces the robot sees all round (hits a cell or two apart,
+    as on a face seen from afar), its inside free in the local map: a drifted part of the map
+    laid over it, since no ray crossed the faces. With one face gone, the same cells are a
+    removal the robot looked into."""
+    from mapserver.diff import removal_evidence
+
+    g = np.full((60, 60), FREE, np.uint8)
+    g[20:40, 10:50] = OCCUPIED
+    loc = np.full(g.shape, FREE, np.uint8)
+    loc[20, 10:50:2] = loc[39, 10:50:2] = OCCUPIED  # sparse hits on the long faces
+    loc[20:40, 10] = loc[20:40, 49] = OCCUPIED
+    inside = np.zeros(g.shape, bool)
+    inside[26:34, 16:44] = True  # 0.3 m from every face
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
+    assert not removal_evidence(g, loc, inside, **kw).any()
+    loc[20, :] = FREE  # the upper face gone: the robot sees into the block from above
+    assert removal_evidence(g, loc, inside, **kw).sum() == inside.sum()
