@@ -89,3 +89,19 @@ class Transform2D:
 
     def inverse(self) -> Transform2D:
         return Transform2D.from_matrix(np.linalg.inv(self.matrix()))
+
+
+def fit_rigid(src: ArrayLike, dst: ArrayLike) -> Transform2D:
+    """The rigid transform that maps points ``src`` (N, 2) closest to ``dst`` (N, 2), in the
+    least-squares sense (2-D Kabsch, no reflection). Raises ``ValueError`` on no points."""
+    a = np.asarray(src, dtype=float).reshape(-1, 2)
+    b = np.asarray(dst, dtype=float).reshape(-1, 2)
+    if len(a) == 0 or len(a) != len(b):
+        raise ValueError(f"need as many src as dst points, at least one: {len(a)} and {len(b)}")
+    ca, cb = a.mean(0), b.mean(0)
+    u, v = a - ca, b - cb
+    theta = math.atan2(float(np.sum(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])), float(np.sum(u * v)))
+    c, s = math.cos(theta), math.sin(theta)
+    return Transform2D(
+        theta, float(cb[0] - (c * ca[0] - s * ca[1])), float(cb[1] - (s * ca[0] + c * ca[1]))
+    )

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from mapserver import align as align_stage
 from mapserver.geometry import Transform2D
+from mapserver.geometry import fit_rigid as fit_rigid_points
 from mapserver.grid import Grid, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
@@ -328,17 +329,7 @@ def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
         dst.append(piece.nav2_from_slam.apply(xy))
     if not src:
         return None
-    a, b = np.concatenate(src), np.concatenate(dst)
-    ca, cb = a.mean(0), b.mean(0)
-    u, v = a - ca, b - cb
-    theta = math.atan2(
-        float(np.sum(u[:, 0] * v[:, 1]) - np.sum(u[:, 1] * v[:, 0])),
-        float(np.sum(u[:, 0] * v[:, 0]) + np.sum(u[:, 1] * v[:, 1])),
-    )
-    c, s = math.cos(theta), math.sin(theta)
-    return Transform2D(
-        theta, float(cb[0] - (c * ca[0] - s * ca[1])), float(cb[1] - (s * ca[0] + c * ca[1]))
-    )
+    return fit_rigid_points(np.concatenate(src), np.concatenate(dst))
 
 
 __all__ = [

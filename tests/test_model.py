@@ -20,7 +20,7 @@ from mapserver.bundle import (
 )
 from mapserver.config import Config, dump_config, load_config
 from mapserver.errors import BundleError, BundleIncomplete, ConfigError
-from mapserver.geometry import Pose2D, Transform2D, wrap_angle, yaw_from_quaternion
+from mapserver.geometry import Pose2D, Transform2D, fit_rigid, wrap_angle, yaw_from_quaternion
 
 # --- geometry --------------------------------------------------------------------------------
 
@@ -254,3 +254,17 @@ def test_public_api_is_pinned() -> None:
         "process_bundle",
     ]
     assert all(hasattr(mapserver, name) for name in mapserver.__all__)
+
+
+def test_fit_rigid_recovers_a_transform_and_is_the_least_squares_one() -> None:
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-10, 10, size=(50, 2))
+    true = Transform2D(math.radians(-37.0), 4.0, -2.5)
+    got = fit_rigid(src, true.apply(src))
+    assert (got.theta, got.tx, got.ty) == pytest.approx((true.theta, true.tx, true.ty))
+    # Noisy targets: the fit beats the true transform on the squared residuals.
+    noisy = true.apply(src) + rng.normal(0, 0.3, size=src.shape)
+    fit = fit_rigid(src, noisy)
+    assert np.sum((fit.apply(src) - noisy) ** 2) <= np.sum((true.apply(src) - noisy) ** 2)
+    with pytest.raises(ValueError, match="as many src as dst"):
+        fit_rigid(np.zeros((0, 2)), np.zeros((0, 2)))

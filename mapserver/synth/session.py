@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.geometry import Pose2D, Transform2D, wrap_angle
+from mapserver.geometry import Pose2D, Transform2D, fit_rigid, wrap_angle
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.synth._common import Seed, _as_rng, _footprint, _Frame, _positive
 from mapserver.synth.changes import Change
@@ -203,16 +203,6 @@ def _drifted(
             error = yaw_rate_rad_per_m * math.sqrt(step) * float(yaw_walk[i - 1])
         est[i, 2] = est[i - 1, 2] + turn + error
     return est
-
-
-def _fit_rigid(src: NDArray[np.float64], dst: NDArray[np.float64]) -> Transform2D:
-    """Least-squares rigid transform mapping points ``src`` (N, 2) onto ``dst`` (N, 2)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    a, b = src - cs, dst - cd
-    theta = math.atan2(float((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()), float((a * b).sum()))
-    c, s = math.cos(theta), math.sin(theta)
-    t = cd - np.array([[c, -s], [s, c]]) @ cs
-    return Transform2D(theta, float(t[0]), float(t[1]))
 
 
 @dataclass(frozen=True)
@@ -559,7 +549,7 @@ def simulate_session(
     slam_map = from_states(grid[a0:a1, b0:b1].copy(), res_s, origin)
 
     # The truth transform and how bent the map is.
-    fit = _fit_rigid(est[:, :2], true[:, :2]) if len(route) > 1 else anchor
+    fit = fit_rigid(est[:, :2], true[:, :2]) if len(route) > 1 else anchor
     residual = np.hypot(*(fit.apply(est[:, :2]) - true[:, :2]).T)
     end_anchor = anchor.apply(est[-1, :2])
     drift = DriftReport(
