@@ -46,7 +46,7 @@ from mapserver.fleet import evidence as fleet_evidence
 from mapserver.fleet import observe, store
 from mapserver.fleet.model import MapLink
 from mapserver.fleet.observe import Observation
-from mapserver.geometry import Pose2D, Transform2D
+from mapserver.geometry import Pose2D, Transform2D, fit_rigid
 from mapserver.grid import Grid, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
@@ -446,6 +446,21 @@ def _cluster_masks(
 
 # The drift correction (metres) from which differences are checked by a local re-fit.
 _REFIT_DRIFT_M = 0.2
+# ... and from which the transform reported is the rigid fit of the warp (beyond the noise
+# of the walls the drift is measured on).
+_REPORT_WARP_M = 0.1
+
+
+def _rigid_of_warp(
+    local: OccupancyMap, transform: Transform2D, drift: deform.DriftStack
+) -> Transform2D:
+    """The rigid transform closest to ``transform`` plus the drift correction over the local
+    walls (one point per 0.25 m): the slam map's best rigid fit to the building, where the
+    alignment's own fit leans to the part whose walls carried it."""
+    walls = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), 0.25)
+    if len(walls) < 3:
+        return transform
+    return fit_rigid(walls, transform.apply(walls) + drift.at(walls))
 
 
 def _refit(
@@ -638,11 +653,14 @@ def process_bundle(
         r0, r1, c0, c1 = box
         return search_view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1]
 
+    warp_drift: list[deform.DriftStack] = []
+
     def _warp() -> tuple[align_stage.GlobalView, np.ndarray, float]:
         a = settings.align
         drift = None
         if a.deform and alignment.trusted:
             drift = _estimate_drift(local, transform, search_view, config, reach_m=drift_reach_m)
+            warp_drift.append(drift)
         # From here on, only where the local map lands matters (with room for the tolerances and
         # the images' margin): the search view around it is several times larger.
         drift_m = drift.max_shift_m() if drift is not None else 0.0
@@ -666,6 +684,8 @@ def process_bundle(
         view, local_state, left_out = stages.run("warp", _warp_pieces)
     else:
         view, local_state, drift_m = stages.run("warp", _warp)
+        if warp_drift and drift_m >= _REPORT_WARP_M:
+            transform = _rigid_of_warp(local, transform, warp_drift[0])
     compared = alignment.trusted or in_pieces
     unfit = stages.run("fit", _fit) if compared and settings.align.fit_check else None
     if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:

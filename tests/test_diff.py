@@ -284,6 +284,31 @@ def test_drift_stack_adds_fields_and_reports_the_largest_combined_shift() -> Non
     assert stack.max_shift_m() == pytest.approx(0.4)
 
 
+def test_the_transform_reported_after_a_drift_correction_is_the_rigid_fit_of_both() -> None:
+    """The rigid transform plus a drift field that shifts everything 0.3 m east and 0.1 m
+    south is the rigid transform moved by that; a field that turns the map is a turn."""
+    from mapserver.deform import DriftField, DriftStack
+    from mapserver.pipeline import _rigid_of_warp
+
+    local = office(width_m=20.0, height_m=12.0, seed=2)
+    t = Transform2D(math.radians(10.0), 2.0, -1.0)
+    uniform = DriftStack(
+        (DriftField(-50.0, -50.0, 50.0, np.full((3, 3, 2), [0.3, -0.1], np.float32)),)
+    )
+    got = _rigid_of_warp(local, t, uniform)
+    assert (got.theta, got.tx, got.ty) == pytest.approx((t.theta, 2.3, -1.1), abs=1e-6)
+    # Shifts that grow across the map: a turn of 1 degree about the nav2 point (0, 0).
+    nodes = np.stack(np.meshgrid(np.arange(-50.0, 51.0, 5.0), np.arange(-50.0, 51.0, 5.0)), -1)
+    turn = Transform2D(math.radians(1.0), 0.0, 0.0)
+    nav2 = t.apply(nodes.reshape(-1, 2))
+    shifts = (turn.apply(nav2) - nav2).reshape(nodes.shape).astype(np.float32)
+    turned = _rigid_of_warp(local, t, DriftStack((DriftField(-50.0, -50.0, 5.0, shifts),)))
+    want = turn.compose(t)
+    assert (turned.theta, turned.tx, turned.ty) == pytest.approx(
+        (want.theta, want.tx, want.ty), abs=1e-3
+    )
+
+
 def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() -> None:
     rng = np.random.default_rng(3)
     global_walls = np.zeros((300, 360), bool)
