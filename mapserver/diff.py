@@ -330,48 +330,53 @@ def misfit_tolerance(
     i_lo, j_lo = int(ti.min()) - 1, int(tj.min()) - 1
     ti, tj = ti - i_lo, tj - j_lo
     n_i, n_j = int(ti.max()) + 2, int(tj.max()) + 2
-    order = np.lexsort((dist_m_at, tj, ti))
-    key, values = (ti * n_j + tj)[order], dist_m_at[order]
-    starts = np.searchsorted(key, np.arange(n_i * n_j))
-    ends = np.searchsorted(key, np.arange(n_i * n_j), side="right")
-    # Walls in each tile's 3 x 3 neighbourhood: only tiles with enough of them get a quantile.
-    counts = np.pad((ends - starts).reshape(n_i, n_j), 1)
-    around = np.zeros((n_i, n_j), np.int64)
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            around += counts[1 + di : 1 + di + n_i, 1 + dj : 1 + dj + n_j]
-    for i, j in zip(*np.nonzero(around >= min_walls), strict=True):
-        parts = [
-            values[starts[k] : ends[k]]
-            for k in (
-                (i + di) * n_j + (j + dj)
-                for di in (-1, 0, 1)
-                for dj in (-1, 0, 1)
-                if 0 <= i + di < n_i and 0 <= j + dj < n_j
-            )
-        ]
-        q = _linear_quantile(np.concatenate(parts), quantile) + base_m / 2
-        grown = min(max(q, base_m), max_m) - base_m
-        r = (i + i_lo) * tile - tile_offset_px[0]
-        c = (j + j_lo) * tile - tile_offset_px[1]
-        tol[max(r, 0) : max(r + tile, 0), max(c, 0) : max(c + tile, 0)] = grown
+    # Per tile, how many walls sit at each distance (a chamfer distance takes few distinct
+    # values), summed over its 3 x 3 neighbourhood: order statistics without sorting per tile.
+    levels, level_of = np.unique(dist_m_at, return_inverse=True)
+    counts = np.zeros((n_i + 2, n_j + 2, len(levels)), np.int32)
+    np.add.at(counts, (ti + 1, tj + 1, level_of.ravel()), 1)
+    around = np.zeros((n_i, n_j, len(levels)), np.int32)
+    for di in (0, 1, 2):
+        for dj in (0, 1, 2):
+            around += counts[di : di + n_i, dj : dj + n_j]
+    n_around = around.sum(axis=2)
+    ii, jj = np.nonzero(n_around >= min_walls)
+    if len(ii) == 0:
+        return tol
+    cum = np.cumsum(around[ii, jj], axis=1)
+    q = _linear_quantiles(levels, cum, n_around[ii, jj], quantile) + base_m / 2
+    grown = np.zeros((n_i, n_j))
+    grown[ii, jj] = np.minimum(np.maximum(q, base_m), max_m) - base_m
+    # Paint the tiles: tile (i, j) covers rows from (i + i_lo) * tile - tile_offset_px[0].
+    r_first = i_lo * tile - tile_offset_px[0]
+    c_first = j_lo * tile - tile_offset_px[1]
+    painted = np.repeat(np.repeat(grown.astype(np.float32), tile, axis=0), tile, axis=1)
+    h, w = local_state.shape
+    r0, c0 = max(r_first, 0), max(c_first, 0)
+    r1, c1 = min(r_first + n_i * tile, h), min(c_first + n_j * tile, w)
+    if r1 > r0 and c1 > c0:
+        tol[r0:r1, c0:c1] = painted[r0 - r_first : r1 - r_first, c0 - c_first : c1 - c_first]
     return tol
 
 
-def _linear_quantile(values: NDArray[np.floating], q: float) -> float:
-    """``float(np.quantile(values, q))`` (the default, linear method) for a non-empty 1-D array,
-    without its per-call overhead: two order statistics and numpy's own interpolation steps
-    (the same value, bit for bit, for the quantiles the tests try)."""
-    n = len(values)
+def _linear_quantiles(
+    levels: NDArray[np.floating], cum: NDArray[np.integer], n: NDArray[np.integer], q: float
+) -> NDArray[np.float64]:
+    """Per row of ``cum`` (K, L), the cumulative counts of a sample over the sorted distinct
+    ``levels`` (L,) with ``n`` (K,) values in all: ``np.quantile(sample, q)`` (the default,
+    linear method), from its two order statistics and numpy's own interpolation steps, in the
+    levels' precision (the same value, bit for bit)."""
     index = (n - 1) * q
-    lo = math.floor(index)
-    hi = min(lo + 1, n - 1)
-    part = np.partition(values, (lo, hi))
-    a, b = part[lo], part[hi]
-    # numpy's lerp, in the values' own precision.
-    gamma = values.dtype.type(index - lo)
+    lo = np.floor(index).astype(np.int64)
+    hi = np.minimum(lo + 1, n - 1)
+    # The k-th smallest value (0-based) is the first level whose cumulative count exceeds k.
+    a = levels[np.argmax(cum > lo[:, None], axis=1)]
+    b = levels[np.argmax(cum > hi[:, None], axis=1)]
+    gamma = (index - lo).astype(levels.dtype)
     span = b - a
-    return float(b - span * (1 - gamma) if gamma >= 0.5 else a + span * gamma)
+    one = levels.dtype.type(1)
+    out = np.where(gamma >= 0.5, b - span * (one - gamma), a + span * gamma)
+    return np.asarray(out, np.float64)
 
 
 def removal_evidence(

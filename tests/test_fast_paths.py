@@ -21,7 +21,7 @@ from mapserver.align import (
 )
 from mapserver.diff import (
     _keep_far,
-    _linear_quantile,
+    _linear_quantiles,
     distance_to,
     drop_small,
     near,
@@ -480,7 +480,11 @@ def test_the_tile_quantile_is_numpys(q: float, dtype: type) -> None:
         values = (rng.random(n) * rng.choice([0.5, 10.0])).astype(dtype)
         if rng.random() < 0.3:  # ties, as distances on a grid have
             values = (np.round(values * 20) / 20).astype(dtype)
-        assert _linear_quantile(values, q) == float(np.quantile(values, q))
+        # As misfit_tolerance counts them: per distinct value, cumulated.
+        levels, level_of = np.unique(values, return_inverse=True)
+        cum = np.cumsum(np.bincount(level_of.ravel(), minlength=len(levels)))[None, :]
+        got = _linear_quantiles(levels, cum, np.array([n]), q)
+        assert got.shape == (1,) and float(got[0]) == float(np.quantile(values, q))
 
 
 @pytest.mark.parametrize("seed", range(10))
