@@ -140,6 +140,7 @@ def align_pieces(
     route_slam: FloatArray,
     start: Transform2D,
     *,
+    also_from: Transform2D | None = None,
     piece_m: float = 20.0,
     min_score: float = 0.6,
     search_xy_m: float = 1.5,
@@ -150,7 +151,9 @@ def align_pieces(
     """Align the local map in pieces along ``route_slam`` (N, 2), slam frame, metres.
 
     Pieces are aligned in route order from the end (where the robot was when it reported its
-    pose), each starting from its successor's transform, and the last from ``start``. A piece
+    pose), each starting from its successor's transform, and the last from ``start`` (and from
+    ``also_from`` too when given, keeping the better fit: the whole map's alignment, for a prior
+    that is off). A piece
     is trusted when it scores ``min_score`` or more and, where it meets a trusted neighbour,
     the two transforms put that point within ``agree_m`` of each other (a piece that found a
     wrong match jumps; drift does not). ``view`` must cover where the pieces land.
@@ -171,15 +174,22 @@ def align_pieces(
             found.append(Piece(i, mask, prior, 0.0, False, area, junction))
             continue
         sub = _sub_map(local, mask)
-        result = align_stage.align(
-            sub,
-            view,
-            prior,
-            search_xy_m=search_xy_m,
-            search_theta_rad=search_theta_rad,
-            narrow_theta_rad=search_theta_rad,
-            min_score=min_score,
-            pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+        starts = [prior] if previous is not None or also_from is None else [prior, also_from]
+        result = max(
+            (
+                align_stage.align(
+                    sub,
+                    view,
+                    t0,
+                    search_xy_m=search_xy_m,
+                    search_theta_rad=search_theta_rad,
+                    narrow_theta_rad=search_theta_rad,
+                    min_score=min_score,
+                    pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+                )
+                for t0 in starts
+            ),
+            key=lambda r: r.score,
         )
         t = result.nav2_from_slam
         trusted = result.trusted

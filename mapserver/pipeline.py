@@ -230,11 +230,15 @@ def _align_in_pieces(
         return None
     # The prior is right where the robot was when it reported its pose (the route's end, where
     # the pieces start); the whole map's best rigid fit is a compromise over all of it.
+    prior = files.manifest.nav2_from_slam_prior()
     return piecewise.align_pieces(
         local,
         view,
         route,
-        files.manifest.nav2_from_slam_prior(),
+        prior,
+        # A prior that is off (mislocalized) starts no piece well; the whole map's search, when
+        # it refined the prior, may have found the building.
+        also_from=alignment.nav2_from_slam if alignment.refined else None,
         piece_m=a.piece_m,
         min_score=a.min_score,
     )
@@ -777,7 +781,8 @@ def process_bundle(
             weights = [p.area_m2 for p in pieces.trusted]
             scores = [p.score for p in pieces.trusted]
             alignment_doc["score"] = round(float(np.average(scores, weights=weights)), 3)
-    elif kept < 1.0:
+    if (kept < 1.0 or pieces is not None) and compared and not in_pieces:
+        # Compared whole (no piece trusted, the whole map's fit was): what the fit check kept.
         local_m2 = float(np.count_nonzero(local.state != UNKNOWN)) * local.resolution**2
         alignment_doc["trusted_area_m2"] = round(local_m2 * kept, 1)
         alignment_doc["trusted_share"] = round(kept, 3)

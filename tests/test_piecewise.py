@@ -3,6 +3,7 @@ explain is aligned in pieces along the route, and the changes in each piece are 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -43,8 +44,12 @@ def test_route_pieces_cut_the_route_by_length() -> None:
 
 
 def _bent_bundle(
-    directory: Path, bend_deg: float, boxes: list[tuple[float, float, float, float]] = BOXES
+    directory: Path,
+    bend_deg: float,
+    boxes: list[tuple[float, float, float, float]] = BOXES,
+    prior_off: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> Path:
+    """``prior_off``: (metres east, metres north, degrees) the reported nav2 pose is off by."""
     world = office(width_m=40.0, height_m=20.0, seed=3)
     now = changed(world, [("add", *b) for b in boxes])
     grid = Grid.of_map(world)
@@ -75,7 +80,11 @@ def _bent_bundle(
         "slam_map": "slam_map.yaml",
         "nav2_map": "nav2_map.yaml",
         "pose": {
-            "nav2": {"x": float(nav2_end[0]), "y": float(nav2_end[1]), "yaw": bend.theta},
+            "nav2": {
+                "x": float(nav2_end[0]) + prior_off[0],
+                "y": float(nav2_end[1]) + prior_off[1],
+                "yaw": bend.theta + math.radians(prior_off[2]),
+            },
             "slam": {"x": float(end[0]), "y": float(end[1]), "yaw": 0.0},
         },
         "trajectory": [{"x": float(x), "y": float(y), "yaw": 0.0} for x, y in slam_route],
@@ -227,3 +236,37 @@ def test_unfit_tiles_are_where_the_local_walls_land_off_the_global_ones(shift_px
     assert (unfit[:, 120:].mean() > 0.5) if shift_px else not unfit.any()
     with pytest.raises(ValueError, match="resolution must be > 0, got 0"):
         piecewise.unfit_tiles(state, walls, resolution=0)
+
+
+def test_pieces_start_from_the_whole_map_s_fit_when_the_prior_is_off(tmp_path: Path) -> None:
+    """A 12-degree kink and a pose prior 1.5 m and 20 degrees off: the whole-map search finds
+    the building but no rigid fit is trusted; the pieces, started from the prior alone, find
+    nothing (it is beyond their search), started from the whole map's fit too, both fit."""
+    config = _with(Config(), "align", fit_check=True)
+    bundle = _bent_bundle(tmp_path / "bent", 12.0, prior_off=(1.5, -1.0, 20.0))
+    r = process_bundle(bundle, config).result
+    a = r["alignment"]
+    assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] >= 1, a
+    for box in BOXES[a["pieces"] - a["trusted_pieces"] :]:
+        assert len(_near(r["differences"], box)) == 1, r["differences"]
+
+
+def test_compared_whole_when_no_piece_is_trusted_reports_the_share_compared(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The whole map's fit is trusted, the fit check sends it to pieces, and none of them is:
+    the whole map is compared (less the tiles off the building), and result.yaml says which
+    share that was, not 0."""
+    real = piecewise.align_pieces
+
+    def none_trusted(*args: object, **kwargs: object) -> piecewise.Pieces:
+        found = real(*args, **kwargs)  # type: ignore[arg-type]
+        return dataclasses.replace(
+            found, pieces=tuple(dataclasses.replace(p, trusted=False) for p in found.pieces)
+        )
+
+    monkeypatch.setattr(piecewise, "align_pieces", none_trusted)
+    config = _with(Config(), "align", fit_check=True)
+    a = process_bundle(_bent_bundle(tmp_path / "bent", 12.0), config).result["alignment"]
+    assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] == 0
+    assert 0.0 < a["trusted_share"] <= 1.0 and a["trusted_area_m2"] > 0
