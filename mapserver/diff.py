@@ -403,6 +403,9 @@ def removal_evidence(
     piece of a thick wall seen from the corridors on either side, its middle unseen). A face
     seen from one side only has no open space behind it.
 
+    Open space on both sides does not count within ``depth_m`` of a structure's inside deeper
+    than ``depth_m`` that the robot never saw: along a ragged face, not through the structure.
+
     Either way, a cell counts only when the robot could have seen it: connected to open space
     through cells seen free, not across a wall seen standing (a solid block whose faces are
     seen all round, its inside free only in a part of a drifted map laid over it).
@@ -434,6 +437,14 @@ def removal_evidence(
         seen_before = cv2.dilate(open_space, before) > 0
         seen_after = cv2.dilate(open_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
         found |= cand & seen_before & seen_after
+    # Seen through along a line, but beside a structure too thick to see through whose inside
+    # the robot never saw: the line ran along its face (a ragged face's notches are open space
+    # on both sides of the cells between them), not through it. The depth rule decides there.
+    thick_unseen = g_occ & (depth >= depth_m) & (local_state[box] == UNKNOWN)
+    if thick_unseen.any():
+        k = max(1, round(depth_m / resolution))
+        beside = cv2.dilate(thick_unseen.view(np.uint8), np.ones((2 * k + 1,) * 2, np.uint8)) > 0
+        found &= ~beside | (depth >= depth_m)
     if across > 0:
         # Through the structure: its cells not seen occupied; across it, not along its face (a
         # line through a face eroded a cell deep reaches open space at the structure's ends):

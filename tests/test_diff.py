@@ -464,3 +464,26 @@ def test_free_cells_behind_a_face_seen_standing_are_no_evidence() -> None:
     assert not removal_evidence(g, loc, inside, **kw).any()
     loc[20, :] = FREE  # the upper face gone: the robot sees into the block from above
     assert removal_evidence(g, loc, inside, **kw).sum() == inside.sum()
+
+
+def test_a_ragged_face_of_a_block_never_seen_inside_is_no_evidence() -> None:
+    """A 1 m deep block drawn with a ragged face (every other row one cell further out, as a
+    coarse or roughened map draws it), the robot in front of it seeing everything up to the
+    true face, the inside unseen: the protruding cells are seen free with open space both
+    sides of them along the face (the notches), yet nothing was removed. A 2-cell wall seen
+    through the same way is."""
+    from mapserver.diff import removal_evidence
+
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
+    g = np.full((60, 60), FREE, np.uint8)
+    g[10:50, 10:30] = OCCUPIED
+    g[10:50:2, 30] = OCCUPIED  # the ragged face: a cell out, every other row
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:, 30:] = FREE  # seen up to the true face; the block's inside never
+    sliver = (g == OCCUPIED) & (loc == FREE)
+    assert sliver.sum() == 20 and not removal_evidence(g, loc, sliver, **kw).any()
+    thin = np.full(g.shape, FREE, np.uint8)
+    thin[10:50, 29:31] = OCCUPIED  # a wall 0.1 m thick, seen free through and beyond
+    seen = np.full(g.shape, FREE, np.uint8)
+    gone = (thin == OCCUPIED) & (seen == FREE)
+    assert removal_evidence(thin, seen, gone, **kw).sum() == gone.sum()
