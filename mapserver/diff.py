@@ -155,9 +155,14 @@ def raw_differences(
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         seen = removed.copy()
-        removed &= ~near(l_occ, ~(offset_distances(removed_tol_px) > removed_tol_px))
+        # The removed tolerance is for a local wall that stands for a drawn one, seen off by
+        # misalignment: within the tolerance of the drawn structure's face. A local wall deeper
+        # inside the drawn structure than that is a new face (a notch cut into a block), and
+        # the cells between it and the open space are what was cut away.
+        faces = l_occ & _near_face(g_occ, removed_tol_m, extra_tolerance_m, box, resolution)
+        removed &= ~near(faces, ~(offset_distances(removed_tol_px) > removed_tol_px))
         if extra_tolerance_m is not None:
-            _keep_far(removed, l_occ, removed_tol_m + extra_tolerance_m[box], resolution)
+            _keep_far(removed, faces, removed_tol_m + extra_tolerance_m[box], resolution)
         # The removed tolerance is for a wall seen off to one side of where it was drawn. Past
         # the end of a local wall, in line with it (a gap in a wall), a smaller one will do.
         end_px = (removed_tol_m if end_tolerance_m is None else end_tolerance_m) / resolution
@@ -171,6 +176,24 @@ def raw_differences(
             removed |= _past_wall_ends(ends, l_occ, g_occ, pad=reach_px, min_run=run)
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
+
+
+def _near_face(
+    g_occ: BoolArray,
+    tolerance_m: float,
+    extra_tolerance_m: NDArray[np.float32] | None,
+    box: tuple[slice, slice],
+    resolution: float,
+) -> BoolArray:
+    """Cells within ``tolerance_m`` of a cell the global map does not draw occupied (outside its
+    structures or along their faces), and every cell where the misfit adds to the tolerance.
+    (H, W) bool on ``box``."""
+    depth_m = cv2.distanceTransform(g_occ.view(np.uint8), cv2.DIST_L2, 5) * resolution
+    face = depth_m <= tolerance_m + resolution
+    if extra_tolerance_m is not None:
+        # Where the walls do not fit (drift left over), any wall may be one seen displaced.
+        face |= extra_tolerance_m[box] > 0
+    return np.asarray(face)
 
 
 def _past_wall_ends(
@@ -495,7 +518,15 @@ def _reached_from_open_space(
     reached = np.zeros(n, bool)
     reached[labels[passable & (global_state == FREE)]] = True
     reached[0] = False  # the barrier, and everything not seen free
-    return np.asarray(reached[labels])
+    out = np.asarray(reached[labels])
+    # The free cells of the barrier next to what was reached (the foot of a wall a ray ended
+    # at): grown through cells seen free, step by step, never across a wall seen.
+    free = (local_state == FREE).view(np.uint8)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    grown = out.view(np.uint8)
+    for _ in range(k):
+        grown = cv2.dilate(grown, cross) & free
+    return np.asarray((grown > 0) | out)
 
 
 def _reached(

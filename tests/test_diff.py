@@ -487,3 +487,52 @@ def test_a_ragged_face_of_a_block_never_seen_inside_is_no_evidence() -> None:
     seen = np.full(g.shape, FREE, np.uint8)
     gone = (thin == OCCUPIED) & (seen == FREE)
     assert removal_evidence(thin, seen, gone, **kw).sum() == gone.sum()
+
+
+def _notched_block() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A solid block 1.5 m deep (rows 30-59) below open space, 0.05 m cells; the local map
+    shows a notch 1 m wide and 0.5 m deep cut into its face (rows 30-39, cols 40-59), the
+    notch's new walls seen, the open space above seen free, the block's inside unseen."""
+    g = np.full((80, 100), FREE, np.uint8)
+    g[30:60, 10:90] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:30, :] = FREE
+    loc[30, 10:90] = OCCUPIED  # the face, where it was not cut
+    loc[30:40, 40:60] = FREE  # the notch, seen free ...
+    loc[30:41, 39] = loc[30:41, 60] = loc[40, 39:61] = OCCUPIED  # ... with its new walls
+    notch = np.zeros(g.shape, bool)
+    notch[30:40, 40:60] = True
+    return g, loc, notch
+
+
+def test_a_notch_cut_into_a_block_is_removed_beside_its_new_walls() -> None:
+    """The removed tolerance is for a local wall that stands for a drawn one (misalignment);
+    the notch's new walls stand 0.5 m inside the drawn block: the cells between them and the
+    open space are what was cut away, and what the robot saw cut away is evidence."""
+    from mapserver.diff import removal_evidence
+
+    g, loc, notch = _notched_block()
+    roi = np.ones(g.shape, bool)
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    removed = raw_differences(g, loc, roi, **kw).removed
+    assert not (removed & ~notch).any()
+    # Beside the face (0.25 m of the unchanged face's hits): the tolerance holds; deeper in,
+    # the new walls do not hide the cells beside them.
+    assert removed[35:40, 45:55].all()
+    assert removed.sum() > notch.sum() / 2
+    evidence = removal_evidence(g, loc, removed, resolution=RES, depth_m=0.15, see_through_m=0.35)
+    # Every removed cell at least 0.15 m deep is evidence, to the foot of the notch's walls.
+    deep = removed.copy()
+    deep[30:33, :] = False
+    assert np.array_equal(evidence & deep, deep)
+
+
+def test_a_wall_seen_off_inside_a_block_still_has_the_removed_tolerance() -> None:
+    """The block's face seen 0.2 m inside where it is drawn (misalignment within the removed
+    tolerance): the free strip in front of it is no removal."""
+    g, loc, _ = _notched_block()
+    loc[30:34, 10:90] = FREE
+    loc[34, 10:90] = OCCUPIED
+    roi = np.ones(g.shape, bool)
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    assert not raw_differences(g, loc, roi, **kw).removed.any()
