@@ -471,18 +471,19 @@ def _refit(
     differences: list[cluster_stage.Difference],
     view: align_stage.GlobalView,
     local_state: np.ndarray,
+    added: np.ndarray,
     grid: Grid,
     config: Config,
 ) -> list[cluster_stage.Difference]:
-    """The differences a small local re-fit of the walls around them does not explain."""
+    """The differences a small local re-fit of the walls around them does not explain, nor a
+    move of the added cells around them onto a wall seen in place (a wall drawn twice)."""
     d = config.pipeline.diff
     global_walls = view.structure | (view.state == OCCUPIED)
     local_walls = local_state == OCCUPIED
-    return [
-        diff
-        for diff in differences
-        if diff.cells is None
-        or not refit_stage.explained_by_refit(
+
+    def explained(diff: cluster_stage.Difference) -> bool:
+        assert diff.cells is not None
+        if refit_stage.explained_by_refit(
             diff.cells,
             diff.kind,
             global_walls,
@@ -490,8 +491,18 @@ def _refit(
             resolution=grid.resolution,
             tolerance_m=d.tolerance_m,
             removed_tolerance_m=d.removed_tolerance_m,
+        ):
+            return True
+        return diff.kind == "added" and refit_stage.ghost_of_wall(
+            diff.cells,
+            added,
+            global_walls,
+            local_walls,
+            resolution=grid.resolution,
+            tolerance_m=d.tolerance_m,
         )
-    ]
+
+    return [diff for diff in differences if diff.cells is None or not explained(diff)]
 
 
 def _map_link(
@@ -752,7 +763,7 @@ def process_bundle(
     )
     if refit and differences:
         differences = stages.run(
-            "refit", lambda: _refit(differences, view, local_state, grid, config)
+            "refit", lambda: _refit(differences, view, local_state, masks.added, grid, config)
         )
 
     alignment_doc = {
@@ -848,7 +859,7 @@ def process_bundle(
                     fleet_masks, removal_current, grid, config, local, drifted=refit
                 )
                 if refit and found:
-                    found = _refit(found, view, local_state, grid, config)
+                    found = _refit(found, view, local_state, fleet_masks.added, grid, config)
             lattice = link.lattice
             window, occupied, free = observe.observed(local_state, grid, lattice)
             slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()

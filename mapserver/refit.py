@@ -120,4 +120,79 @@ def explained_by_refit(
     return bool(near_wall.mean() >= _EXPLAINED_SHARE)
 
 
-__all__ = ["explained_by_refit"]
+def ghost_of_wall(
+    cells: NDArray[np.intp],
+    added: BoolArray,
+    global_walls: BoolArray,
+    local_walls: BoolArray,
+    *,
+    resolution: float,
+    tolerance_m: float,
+    reach_m: float = 1.5,
+    shift_m: float = 0.5,
+    turn_deg: float = 3.0,
+    min_length_m: float = 1.5,
+    max_width_m: float = 0.2,
+) -> bool:
+    """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
+    second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool), a line
+    at least ``min_length_m`` long that one rigid move of at most ``shift_m`` and ``turn_deg``
+    lays, 80 % of it, within ``tolerance_m`` of a global wall the local map also shows in place;
+    the difference itself no wider across that line than ``max_width_m``.
+
+    The walls around a revisit's second copy fit where they are (the first copy lies on the
+    global wall), so :func:`explained_by_refit` keeps it; the copy itself fits once moved. A
+    new obstacle in open space is no such line, and one placed beside a wall is shorter than a
+    stretch of wall seen twice.
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    h, w = global_walls.shape
+    reach = math.ceil((reach_m + shift_m) / resolution) + 2
+    r0, c0 = max(int(rows.min()) - reach, 0), max(int(cols.min()) - reach, 0)
+    r1, c1 = min(int(rows.max()) + reach + 1, h), min(int(cols.max()) + reach + 1, w)
+    tol_px = tolerance_m / resolution
+    # Global walls the local map shows in place too: the first copy of the wall.
+    g = global_walls[r0:r1, c0:c1]
+    seen = distance_to(local_walls[r0:r1, c0:c1]) <= tol_px
+    target = g & seen
+    if not target.any():
+        return False
+    mark = np.zeros(g.shape, np.uint8)
+    mark[rows - r0, cols - c0] = 1
+    k = math.ceil(reach_m / resolution)
+    around = cv2.dilate(mark, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2))
+    pr, pc = nonzero_cells(added[r0:r1, c0:c1] & (around > 0))
+    if len(pr) < 3:
+        return False
+    # Long enough to be a stretch of wall: its extent along its main axis.
+    pts = np.stack([pr, pc], axis=1).astype(float)
+    centred = pts - pts.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    along = centred @ axis
+    if float(along.max() - along.min()) * resolution < min_length_m:
+        return False
+    # The difference itself a piece of that line, thin across it (a wall seen again is one
+    # line of hits; a box or a column beside a wall seen twice has a depth of its own).
+    across = (np.stack([rows - r0, cols - c0], axis=1) - pts.mean(axis=0)) @ np.array(
+        [axis[1], -axis[0]]
+    )
+    lo, hi = np.percentile(across, [5, 95])
+    if float(hi - lo) * resolution > max_width_m:
+        return False
+    near_target = distance_to(target) <= tol_px
+    centre_r, centre_c = float(pr.mean()), float(pc.mean())
+    # Moves across the line only: slid along itself, any line lands on any wall it continues.
+    steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
+    dy, dx = (axis[1] * steps)[:, None], (-axis[0] * steps)[:, None]
+    best = 0.0
+    for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
+        ct, st = math.cos(turn), math.sin(turn)
+        qr = centre_r + (pr - centre_r) * ct - (pc - centre_c) * st
+        qc = centre_c + (pr - centre_r) * st + (pc - centre_c) * ct
+        ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
+        ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
+        best = max(best, float(near_target[ir, ic].mean(axis=1).max()))
+    return best >= _EXPLAINED_SHARE
+
+
+__all__ = ["explained_by_refit", "ghost_of_wall"]

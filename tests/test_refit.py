@@ -72,3 +72,69 @@ def test_a_gap_in_a_straight_wall_is_not_explained_by_sliding_the_wall_over_it()
     off = np.roll(glob, 7, axis=0) & ~np.roll(gap, 7, axis=0)
     off_gap = gap & ~off
     assert explained_by_refit(cells(off_gap), "removed", glob, off | np.roll(gap, 7, axis=0), **KW)
+
+
+def _corridor() -> tuple[np.ndarray, np.ndarray]:
+    """A straight wall 1 px thick across an 8 m x 4 m grid at 0.05 m (row 40), seen in place by
+    the local map."""
+    glob = np.zeros((80, 160), bool)
+    glob[40, 5:155] = True
+    return glob, glob.copy()
+
+
+def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost() -> None:
+    from mapserver.refit import ghost_of_wall
+
+    glob, local = _corridor()
+    # A revisit drew 3 m of the wall again 0.35 m off, as sparse hits, 1 degree turned.
+    cols = np.arange(40, 100, 2)
+    ghost = np.zeros(glob.shape, bool)
+    ghost[47 + (cols - 40) // 60, cols] = True
+    local |= ghost
+    piece = ghost.copy()
+    piece[:, 70:] = False  # DBSCAN cut the line in pieces; one of them is judged
+    assert ghost_of_wall(cells(piece), ghost, glob, local, resolution=RES, tolerance_m=0.15)
+
+
+def test_a_new_wall_beside_a_wall_occluding_it_is_no_ghost() -> None:
+    """A new partition 0.35 m in front of the wall: the robot, on the open side, sees the new
+    one and not the old one behind it; nothing the local map shows in place to be a copy of."""
+    from mapserver.refit import ghost_of_wall
+
+    glob, local = _corridor()
+    new = np.zeros(glob.shape, bool)
+    new[47, 40:100] = True
+    local[40, 35:105] = False  # occluded behind it
+    local |= new
+    assert not ghost_of_wall(cells(new), new, glob, local, resolution=RES, tolerance_m=0.15)
+
+
+def test_a_column_beside_a_wall_seen_twice_is_no_ghost() -> None:
+    """The wall drawn again 0.35 m off, and a new column 0.4 m wide against that line: the
+    line is a ghost, the column has a depth of its own."""
+    from mapserver.refit import ghost_of_wall
+
+    glob, local = _corridor()
+    added = np.zeros(glob.shape, bool)
+    added[47, 40:120] = True
+    column = np.zeros(glob.shape, bool)
+    column[48:56, 70:78] = True
+    added |= column
+    local |= added
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert not ghost_of_wall(cells(column), added, glob, local, **kw)
+    line = added.copy()
+    line[48:, :] = False
+    line[:, 60:] = False
+    assert ghost_of_wall(cells(line), added, glob, local, **kw)
+
+
+def test_a_short_line_beside_a_wall_is_no_ghost() -> None:
+    """A 0.6 m box face seen 0.35 m from a wall: too short to be a stretch of wall seen again."""
+    from mapserver.refit import ghost_of_wall
+
+    glob, local = _corridor()
+    face = np.zeros(glob.shape, bool)
+    face[47, 60:72] = True
+    local |= face
+    assert not ghost_of_wall(cells(face), face, glob, local, resolution=RES, tolerance_m=0.15)
