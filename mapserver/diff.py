@@ -188,8 +188,10 @@ def _near_face(
     """Cells within ``tolerance_m`` of a cell the global map does not draw occupied (outside its
     structures or along their faces), and every cell where the misfit adds to the tolerance.
     (H, W) bool on ``box``."""
-    depth_m = cv2.distanceTransform(g_occ.view(np.uint8), cv2.DIST_L2, 5) * resolution
-    face = depth_m <= tolerance_m + resolution
+    # Deep: every cell within the tolerance (a square: cheap, and never deeper than the disc
+    # says) drawn occupied.
+    k = math.ceil(tolerance_m / resolution) + 1
+    face = cv2.erode(g_occ.view(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)) == 0
     if extra_tolerance_m is not None:
         # Where the walls do not fit (drift left over), any wall may be one seen displaced.
         face |= extra_tolerance_m[box] > 0
