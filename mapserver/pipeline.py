@@ -1,7 +1,10 @@
-"""The only module that knows the order of the stages: load, align, roi, diff, cluster, render.
+"""The only module that knows the order of the stages: load, align, pieces, warp, fit, roi, diff,
+cluster, refit, render, observe.
 
 ``process_bundle`` turns a bundle directory into an :class:`Outcome` (the result document and the
-encoded images) without writing anything; publishing it is :mod:`mapserver.outbox`'s job.
+encoded images) without writing anything; publishing it is :mod:`mapserver.outbox`'s job. Each
+stage is a function of plain data (its inputs as arguments, its result returned);
+``process_bundle`` runs them in order, each timed and named by ``_Stages``.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -506,16 +510,16 @@ def _refit(
 
 
 def _map_link(
-    maps_root: Path,
+    maps_root: Path | None,
     files: BundleFiles,
     global_map: OccupancyMap,
     bundle_dir: Path,
     warnings: list[str],
 ) -> MapLink | None:
     """The stored map whose version is this bundle's global map (by its image's sha256), or
-    None with a warning."""
+    None with a warning (None without one: no ``maps:`` configured, or a map with no image)."""
     image = global_map.image
-    if image is None:
+    if maps_root is None or image is None:
         return None
     known = None
     if files.nav2_image is not None:
@@ -539,194 +543,251 @@ def _map_link(
     return link
 
 
-def process_bundle(
-    bundle_dir: Path,
-    config: Config,
-    *,
-    bundle_id: str | None = None,
-    checksums_verified: bool = False,
-) -> Outcome:
-    """Process one complete bundle. Raises a :class:`~mapserver.errors.MapserverError` subclass
-    for bad input (its ``stage`` says where it failed). Reads the inputs, never modifies them.
-
-    ``checksums_verified``: the manifest's checksums were checked against these very files
-    already (the daemon does when it takes a bundle), so they are not hashed again.
-    """
-    bundle_dir = Path(bundle_dir)
-    check_bundle_dir(bundle_dir)
-    bundle_id = bundle_id or bundle_dir.resolve().name
+def _bundle_id(bundle_dir: Path, given: str | None) -> str:
+    """The bundle's id: ``given``, else the directory's name. Raises BundleError when it is not
+    a valid one."""
+    bundle_id = given or bundle_dir.resolve().name
     if not is_valid_bundle_id(bundle_id):
         raise BundleError(
             f"invalid bundle id '{bundle_id}': use letters, digits, '.', '_' and '-', "
             "starting with a letter or digit, at most 128 characters",
             file=bundle_dir,
         )
-    stages = _Stages(bundle_id)
-    settings = config.pipeline
-    inputs = stages.run(
-        "load", lambda: _load(bundle_dir, config, checksums_verified=checksums_verified)
+    return bundle_id
+
+
+def _view_margin_m(config: Config) -> float:
+    """The room, metres, the views keep around where the local map lands: for the differences'
+    reach and the images' margin."""
+    return max(config.pipeline.render.margin_m, _ANALYSIS_MARGIN_M)
+
+
+def _drift_reach_m(config: Config) -> float:
+    """How far, metres, the drift estimate looks for a wall's counterpart (0 without the drift
+    correction): the views' nearest-wall fields are built that wide from the start, for ICP and
+    the drift estimate alike."""
+    a = config.pipeline.align
+    return 2 * a.deform_max_shift_m + 0.5 if a.deform else 0.0
+
+
+def _drawing(link: MapLink | None, config: Config) -> OccupancyMap | None:
+    """The floor-plan drawing whose walls the alignment reads: version 1 of the stored map the
+    bundle's global map is a later version of (None: no stored map, or it is version 1)."""
+    if link is None or link.bundle_version <= 1:
+        return None
+    return GLOBAL_MAPS.load(
+        link.first_yaml,
+        link.first_yaml.parent / map_image_name(link.first_yaml),
+        max_pixels=config.max_image_pixels,
     )
-    files, local, global_map = inputs.files, inputs.local, inputs.global_map
-    warnings = list(global_map.warnings) + list(local.warnings)
+
+
+def _align(
+    inputs: _Inputs, config: Config, drawing: OccupancyMap | None
+) -> tuple[align_stage.GlobalView, align_stage.Alignment]:
+    """The whole local map's rigid alignment (slam -> nav2), and the view of the global map it
+    was searched on (the wide search's when that ran; its grid is in the nav2 frame)."""
+    a = config.pipeline.align
+    files, local = inputs.files, inputs.local
     prior = files.manifest.nav2_from_slam_prior()
-    # Around where the local map lands, the views keep room for the differences' reach and the
-    # images' margin.
-    margin_m = max(settings.render.margin_m, _ANALYSIS_MARGIN_M)
-    # How far the drift estimate looks for a wall's counterpart: the views' nearest-wall
-    # fields are built that wide from the start, for ICP and the drift estimate alike.
-    drift_reach_m = 2 * settings.align.deform_max_shift_m + 0.5 if settings.align.deform else 0.0
+    robot = files.manifest.pose.slam.to_pose()
+    pivot = (robot.x, robot.y)
+    wide_rad = math.radians(a.search_theta_deg)
+    views: list[align_stage.GlobalView] = []
 
-    # The stored map this bundle's global map is a version of (maps: set), looked up once:
-    # alignment reads a floor-plan drawing's walls from its version 1, the fleet update needs
-    # it after.
-    link_warnings: list[str] = []
-    link = (
-        _map_link(config.maps, files, global_map, bundle_dir, link_warnings)
-        if config.maps is not None
-        else None
-    )
-    drawing = None
-    if link is not None and link.bundle_version > 1:
-        drawing = GLOBAL_MAPS.load(
-            link.first_yaml,
-            link.first_yaml.parent / map_image_name(link.first_yaml),
-            max_pixels=config.max_image_pixels,
-        )
-
-    def _align() -> tuple[align_stage.GlobalView, align_stage.Alignment]:
-        robot = files.manifest.pose.slam.to_pose()
-        pivot = (robot.x, robot.y)
-        wide_rad = math.radians(settings.align.search_theta_deg)
-        views: list[align_stage.GlobalView] = []
-
-        def view_for(theta_rad: float) -> align_stage.GlobalView:
-            views.append(
-                align_stage.make_view(
-                    global_map,
-                    local,
-                    prior,
-                    search_xy_m=settings.align.search_xy_m,
-                    search_theta_rad=theta_rad,
-                    # Room for the images' margin around where the local map lands.
-                    margin_m=margin_m,
-                    pivot_slam=pivot,
-                    wall_reach_m=drift_reach_m,
-                    drawing=drawing,
-                )
+    def view_for(theta_rad: float) -> align_stage.GlobalView:
+        views.append(
+            align_stage.make_view(
+                inputs.global_map,
+                local,
+                prior,
+                search_xy_m=a.search_xy_m,
+                search_theta_rad=theta_rad,
+                # Room for the images' margin around where the local map lands.
+                margin_m=_view_margin_m(config),
+                pivot_slam=pivot,
+                wall_reach_m=_drift_reach_m(config),
+                drawing=drawing,
             )
-            return views[-1]
-
-        # The view for the narrow search first (most priors are within a few degrees): the
-        # wide one, several times larger, is built only when the wide search runs.
-        narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
-        result = align_stage.align(
-            local,
-            view_for(narrow),
-            prior,
-            narrow_theta_rad=narrow,
-            widen=lambda: view_for(wide_rad),
-            refine=settings.align.refine,
-            search_xy_m=settings.align.search_xy_m,
-            search_theta_rad=wide_rad,
-            min_score=settings.align.min_score,
-            min_gain=settings.align.min_gain,
-            jump_m=settings.align.jump_m,
-            pivot_slam=pivot,
         )
-        return views[-1], result
+        return views[-1]
 
-    view, alignment = stages.run("align", _align)
-    warnings += alignment.warnings
+    # The view for the narrow search first (most priors are within a few degrees): the
+    # wide one, several times larger, is built only when the wide search runs.
+    narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
+    result = align_stage.align(
+        local,
+        view_for(narrow),
+        prior,
+        narrow_theta_rad=narrow,
+        widen=lambda: view_for(wide_rad),
+        refine=a.refine,
+        search_xy_m=a.search_xy_m,
+        search_theta_rad=wide_rad,
+        min_score=a.min_score,
+        min_gain=a.min_gain,
+        jump_m=a.jump_m,
+        pivot_slam=pivot,
+    )
+    return views[-1], result
+
+
+@dataclass(frozen=True)
+class _Warped:
+    """The local map warped onto the global map: ``local_state`` on ``view.grid`` (nav2 frame),
+    ``view`` the search view cropped to where the local map lands (with the views' margin).
+
+    ``in_pieces``: through the trusted pieces' own transforms, ``left_out`` the cells the
+    untrusted pieces land on (else None). ``drift``: the drift correction applied on top of the
+    rigid transform (None: none), ``drift_m`` its largest shift, metres (0 in pieces).
+    """
+
+    view: align_stage.GlobalView
+    local_state: np.ndarray
+    left_out: np.ndarray | None
+    in_pieces: bool
+    drift: deform.DriftStack | None = None
+    drift_m: float = 0.0
+
+
+def _warp(
+    local: OccupancyMap,
+    search_view: align_stage.GlobalView,
+    alignment: align_stage.Alignment,
+    pieces: piecewise.Pieces | None,
+    config: Config,
+) -> _Warped:
+    """The local map warped onto ``search_view``: in pieces when some piece is trusted, else
+    through the whole map's transform."""
+    if pieces is not None and pieces.trusted:
+        return _warp_pieces(local, search_view, pieces, config)
+    return _warp_whole(local, search_view, alignment, config)
+
+
+def _warp_whole(
+    local: OccupancyMap,
+    search_view: align_stage.GlobalView,
+    alignment: align_stage.Alignment,
+    config: Config,
+) -> _Warped:
+    """The local map through the alignment's transform, plus the drift correction when the
+    alignment is trusted (and ``deform`` on)."""
+    a = config.pipeline.align
     transform = alignment.nav2_from_slam
-    grid = view.grid
-    search_view = view
-    pieces = None
-    if not alignment.trusted and settings.align.pieces:
-        pieces = stages.run(
-            "pieces", lambda: _align_in_pieces(files, local, search_view, alignment, config)
+    drift = None
+    if a.deform and alignment.trusted:
+        drift = _estimate_drift(
+            local, transform, search_view, config, reach_m=_drift_reach_m(config)
         )
+    # From here on, only where the local map lands matters (with room for the tolerances and
+    # the images' margin): the search view around it is several times larger.
+    drift_m = drift.max_shift_m() if drift is not None else 0.0
+    box = landing_box(
+        local,
+        search_view.grid,
+        transform,
+        margin_px=(drift_m + _view_margin_m(config)) / search_view.grid.resolution,
+        step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
+    )
+    work = search_view.cropped(box) if box is not None else search_view
+    warped = deform.warp_local(local, work.grid, transform, drift)
+    return _Warped(work, warped, None, in_pieces=False, drift=drift, drift_m=drift_m)
 
-    def _warp_pieces() -> tuple[align_stage.GlobalView, np.ndarray, np.ndarray]:
-        assert pieces is not None
-        grid = search_view.grid
 
-        def warp_piece(part: OccupancyMap, t: Transform2D) -> np.ndarray:
-            drift = None
-            if settings.align.deform:
-                drift = _estimate_drift(part, t, search_view, config, reach_m=drift_reach_m)
-            return deform.warp_local(part, grid, t, drift)
+def _warp_pieces(
+    local: OccupancyMap,
+    search_view: align_stage.GlobalView,
+    pieces: piecewise.Pieces,
+    config: Config,
+) -> _Warped:
+    """The trusted pieces, each through its own transform (and drift correction), and the cells
+    the untrusted ones land on; the view cropped to both with the views' margin."""
+    grid = search_view.grid
+    warp_piece = partial(_warp_piece, search_view, config)
+    state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
+    x, y, w, h = cv2.boundingRect(((state != UNKNOWN) | out).view(np.uint8))
+    m = math.ceil(_view_margin_m(config) / grid.resolution)
+    box = (
+        max(y - m, 0),
+        min(y + h + m, grid.height),
+        max(x - m, 0),
+        min(x + w + m, grid.width),
+    )
+    r0, r1, c0, c1 = box
+    return _Warped(search_view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1], in_pieces=True)
 
-        state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
-        x, y, w, h = cv2.boundingRect(((state != UNKNOWN) | out).view(np.uint8))
-        m = math.ceil(margin_m / grid.resolution)
-        box = (
-            max(y - m, 0),
-            min(y + h + m, grid.height),
-            max(x - m, 0),
-            min(x + w + m, grid.width),
-        )
-        r0, r1, c0, c1 = box
-        return search_view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1]
 
-    warp_drift: list[deform.DriftStack] = []
+def _warp_piece(
+    view: align_stage.GlobalView, config: Config, part: OccupancyMap, transform: Transform2D
+) -> np.ndarray:
+    """One piece's states on ``view``'s grid: through ``transform`` and its own drift
+    correction (``deform`` on)."""
+    drift = None
+    if config.pipeline.align.deform:
+        drift = _estimate_drift(part, transform, view, config, reach_m=_drift_reach_m(config))
+    return deform.warp_local(part, view.grid, transform, drift)
 
-    def _warp() -> tuple[align_stage.GlobalView, np.ndarray, float]:
-        a = settings.align
-        drift = None
-        if a.deform and alignment.trusted:
-            drift = _estimate_drift(local, transform, search_view, config, reach_m=drift_reach_m)
-            warp_drift.append(drift)
-        # From here on, only where the local map lands matters (with room for the tolerances and
-        # the images' margin): the search view around it is several times larger.
-        drift_m = drift.max_shift_m() if drift is not None else 0.0
-        box = landing_box(
-            local,
-            search_view.grid,
-            transform,
-            margin_px=(drift_m + margin_m) / search_view.grid.resolution,
-            step_px=deform.WARP_STEP_PX,  # the same warp as on the whole view
-        )
-        work = search_view.cropped(box) if box is not None else search_view
-        return work, deform.warp_local(local, work.grid, transform, drift), drift_m
 
-    def _fit() -> np.ndarray:
-        return _unfit(local_state, view, settings.diff.max_misfit_tolerance_m)
+def _reported_transform(
+    local: OccupancyMap, alignment: align_stage.Alignment, warped: _Warped
+) -> Transform2D:
+    """The slam -> nav2 transform to report for the local map warped whole: the rigid fit of
+    the alignment's transform plus the drift correction when that is ``_REPORT_WARP_M`` or
+    more, else the alignment's."""
+    transform = alignment.nav2_from_slam
+    if warped.drift is not None and warped.drift_m >= _REPORT_WARP_M:
+        return _rigid_of_warp(local, transform, warped.drift)
+    return transform
 
-    in_pieces = pieces is not None and bool(pieces.trusted)
-    left_out: np.ndarray | None = None
-    drift_m = 0.0
-    if in_pieces:
-        view, local_state, left_out = stages.run("warp", _warp_pieces)
-    else:
-        view, local_state, drift_m = stages.run("warp", _warp)
-        if warp_drift and drift_m >= _REPORT_WARP_M:
-            transform = _rigid_of_warp(local, transform, warp_drift[0])
-    compared = alignment.trusted or in_pieces
-    unfit = stages.run("fit", _fit) if compared and settings.align.fit_check else None
-    if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
-        # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
-        # correction. Aligned in pieces, each region fits on its own or is left out.
-        pieces = stages.run(
-            "pieces",
-            lambda: _align_in_pieces(files, local, search_view, alignment, config, bent=True),
-        )
-        if pieces is not None and pieces.trusted:
-            in_pieces = True
-            view, local_state, left_out = stages.run("warp", _warp_pieces)
-            drift_m = 0.0
-            unfit = stages.run("fit", _fit)
-    if pieces is not None and in_pieces:
+
+@dataclass(frozen=True)
+class _Aligned:
+    """The local map as it is compared: ``local_state`` on ``view.grid`` (nav2 frame), the
+    regions whose walls do not fit made unknown and added to ``left_out``.
+
+    ``transform`` (slam -> nav2) is the one reported, ``drift_m`` the largest drift correction
+    applied on top of it, metres. ``pieces``: the alignment in pieces, if one was tried;
+    ``in_pieces``: it is what was warped. ``compared``: anything is compared; ``kept``: the
+    share of the warped map's observed area the fit check kept. ``warnings``: what this adds to
+    the result's warnings (in pieces, they stand for the whole map's alignment warnings).
+    """
+
+    view: align_stage.GlobalView
+    local_state: np.ndarray
+    transform: Transform2D
+    drift_m: float
+    pieces: piecewise.Pieces | None
+    in_pieces: bool
+    left_out: np.ndarray | None
+    compared: bool
+    kept: float
+    warnings: tuple[str, ...]
+
+
+def _aligned(
+    local: OccupancyMap,
+    alignment: align_stage.Alignment,
+    pieces: piecewise.Pieces | None,
+    warped: _Warped,
+    transform: Transform2D,
+    unfit: np.ndarray | None,
+) -> _Aligned:
+    """What of ``warped`` is compared, with which transform: ``unfit`` (on the warped view's
+    grid, None: not checked) is left out; aligned in pieces, the pieces' rigid fit is
+    reported."""
+    warnings: list[str] = []
+    if pieces is not None and warped.in_pieces:
         transform = piecewise.fit_rigid(local, pieces) or transform
-        warnings[:] = [w for w in warnings if w not in alignment.warnings]
         warnings.append(
             f"the local map was aligned in {len(pieces.pieces)} pieces along the route, "
             f"{len(pieces.trusted)} trusted: {pieces.trusted_share:.0%} of the observed area "
             f"({pieces.trusted_area_m2:.0f} m2) compared, the rest left out"
         )
-    route_xy = _route_nav2(files, transform)  # the trajectory ROI and the overlay draw it
-    grid = view.grid
+    local_state, left_out = warped.local_state, warped.left_out
+    compared = alignment.trusted or warped.in_pieces
     kept = 1.0
     if unfit is not None and unfit.any():
+        grid = warped.view.grid
         observed_m2 = float(np.count_nonzero(local_state != UNKNOWN)) * grid.resolution**2
         cut = unfit & (local_state != UNKNOWN)
         left_out = cut if left_out is None else left_out | cut
@@ -738,35 +799,48 @@ def process_bundle(
             f"{cut_m2:.0f} m2 of the local map ({1.0 - kept:.0%}) left out: its walls do not lie "
             "on the global map's walls after alignment (a bend beyond the drift correction)"
         )
-    if drift_m > 0.1:
-        log.info("%s: drift corrected, up to %.2f m", bundle_id, drift_m)
-    region = stages.run(
-        "roi", lambda: _make_roi(config, files, transform, route_xy, local_state, grid, warnings)
+    return _Aligned(
+        view=warped.view,
+        local_state=local_state,
+        transform=transform,
+        drift_m=warped.drift_m,
+        pieces=pieces,
+        in_pieces=warped.in_pieces,
+        left_out=left_out,
+        compared=compared,
+        kept=kept,
+        warnings=tuple(warnings),
     )
 
-    def _diff() -> tuple[diff_stage.DiffMasks, np.ndarray]:
-        if not compared:
-            empty = np.zeros(grid.shape, bool)
-            return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
-        return _diff_masks(
-            view.state, view.structure, local_state, region.mask, grid, config, local, global_map
-        )
 
-    masks, removal_evidence = stages.run("diff", _diff)
-    # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are
-    # not reported, and a difference that a small local re-fit of the walls around it
-    # explains is a wall seen twice.
-    refit = compared and (drift_m >= _REFIT_DRIFT_M or in_pieces)
-    differences = stages.run(
-        "cluster",
-        lambda: _cluster_masks(masks, removal_evidence, grid, config, local, drifted=refit),
+def _diff(
+    aligned: _Aligned, roi_mask: np.ndarray, inputs: _Inputs, config: Config
+) -> tuple[diff_stage.DiffMasks, np.ndarray]:
+    """The filtered added/removed masks of the aligned local map against the global map and the
+    removal evidence, on ``aligned.view.grid``: all empty when nothing is compared."""
+    view = aligned.view
+    if not aligned.compared:
+        empty = np.zeros(view.grid.shape, bool)
+        return diff_stage.DiffMasks(empty, empty.copy()), empty.copy()
+    return _diff_masks(
+        view.state,
+        view.structure,
+        aligned.local_state,
+        roi_mask,
+        view.grid,
+        config,
+        inputs.local,
+        inputs.global_map,
     )
-    if refit and differences:
-        differences = stages.run(
-            "refit", lambda: _refit(differences, view, local_state, masks.added, grid, config)
-        )
 
-    alignment_doc = {
+
+def _alignment_doc(
+    alignment: align_stage.Alignment, aligned: _Aligned, local: OccupancyMap, min_score: float
+) -> dict[str, Any]:
+    """The ``alignment`` section of ``result.yaml``: the transform reported (slam -> nav2,
+    radians and metres), how it was found and how far it is trusted."""
+    transform, pieces, kept = aligned.transform, aligned.pieces, aligned.kept
+    doc: dict[str, Any] = {
         "theta": round(transform.theta, 6),
         "tx": round(transform.tx, 4),
         "ty": round(transform.ty, 4),
@@ -775,119 +849,180 @@ def process_bundle(
         "score": round(alignment.score, 3),
         "prior_score": round(alignment.prior_score, 3),
         # The largest slam-drift correction applied on top of the rigid transform, metres.
-        "drift_m": round(drift_m, 3),
-        "trusted": compared,
-        "min_score": settings.align.min_score,
+        "drift_m": round(aligned.drift_m, 3),
+        "trusted": aligned.compared,
+        "min_score": min_score,
     }
     if pieces is not None:
-        alignment_doc["method"] = f"{alignment.method}+pieces"
-        alignment_doc["trusted_area_m2"] = round(pieces.trusted_area_m2 * kept, 1)
-        alignment_doc["trusted_share"] = round(pieces.trusted_share * kept, 3)
-        alignment_doc["pieces"] = len(pieces.pieces)
-        alignment_doc["trusted_pieces"] = len(pieces.trusted)
-        if in_pieces:
+        doc["method"] = f"{alignment.method}+pieces"
+        doc["trusted_area_m2"] = round(pieces.trusted_area_m2 * kept, 1)
+        doc["trusted_share"] = round(pieces.trusted_share * kept, 3)
+        doc["pieces"] = len(pieces.pieces)
+        doc["trusted_pieces"] = len(pieces.trusted)
+        if aligned.in_pieces:
             # The score of what was compared: the trusted pieces', by area; the whole map's
             # rigid fit scored whole_score.
-            alignment_doc["whole_score"] = alignment_doc["score"]
+            doc["whole_score"] = doc["score"]
             weights = [p.area_m2 for p in pieces.trusted]
             scores = [p.score for p in pieces.trusted]
-            alignment_doc["score"] = round(float(np.average(scores, weights=weights)), 3)
-    if (kept < 1.0 or pieces is not None) and compared and not in_pieces:
+            doc["score"] = round(float(np.average(scores, weights=weights)), 3)
+    if (kept < 1.0 or pieces is not None) and aligned.compared and not aligned.in_pieces:
         # Compared whole (no piece trusted, the whole map's fit was): what the fit check kept.
         local_m2 = float(np.count_nonzero(local.state != UNKNOWN)) * local.resolution**2
-        alignment_doc["trusted_area_m2"] = round(local_m2 * kept, 1)
-        alignment_doc["trusted_share"] = round(kept, 3)
-    notice = trust_notice(alignment_doc)
+        doc["trusted_area_m2"] = round(local_m2 * kept, 1)
+        doc["trusted_share"] = round(kept, 3)
+    return doc
 
-    def _render() -> dict[str, bytes]:
-        r = settings.render
-        window = render.window_for(
-            grid, region.mask, margin_m=r.margin_m, max_side_px=r.max_side_px
-        )
-        title = f"{bundle_id}  robot {files.manifest.robot}  {files.manifest.stamp}"
-        over = render.overlay(
-            grid,
-            window,
-            view.state,
-            local_state,
-            region.polygon,
-            differences,
-            route_xy=route_xy,
-            title=title,
-            banner=notice,
-            left_out=left_out,
-        )
-        dimg = render.diff_image(grid, window, view.state, masks.added, masks.removed, differences)
-        return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
 
-    images = stages.run("render", _render)
+@dataclass(frozen=True)
+class _Found:
+    """What the comparison found, on the aligned view's grid (nav2 frame): ``region`` the ROI,
+    ``masks`` the filtered added/removed cells, ``differences`` the ones reported (largest
+    first). ``refit``: the session drifted, so specks were dropped and the differences checked
+    by a local re-fit (``_REFIT_DRIFT_M``)."""
 
-    observation = None
-    maps_root = config.maps
-    if maps_root is not None:
+    region: roi.Roi
+    masks: diff_stage.DiffMasks
+    differences: list[cluster_stage.Difference]
+    refit: bool
 
-        def _observe() -> Observation | None:
-            warnings.extend(link_warnings)
-            if link is None:
-                return None
-            if not compared:
-                warnings.append(
-                    f"map {link.name}: the alignment is not trusted; this bundle adds nothing "
-                    "to the fleet map"
-                )
-                return None
-            found = differences
-            if link.current_version != link.bundle_version:
-                # Judged against the version the fleet navigates on now, not the robot's copy.
-                current = GLOBAL_MAPS.load(
-                    link.current_yaml,
-                    link.current_yaml.parent / map_image_name(link.current_yaml),
-                    max_pixels=config.max_image_pixels,
-                )
-                state = resample(current.state, Grid.of_map(current), grid)
-                own = view.state if view.raw_state is None else view.raw_state
-                same = state == own
-                structure = (view.structure & same) | (state == OCCUPIED)
-                if view.raw_state is not None:
-                    # The drawing's walls, where no published change has touched them.
-                    state = np.where(same & (view.state == OCCUPIED), OCCUPIED, state)
-                    state = state.astype(np.uint8)
-                fleet_masks, removal_current = _diff_masks(
-                    state, structure, local_state, region.mask, grid, config, local, global_map
-                )
-                found = _cluster_masks(
-                    fleet_masks, removal_current, grid, config, local, drifted=refit
-                )
-                if refit and found:
-                    found = _refit(found, view, local_state, fleet_masks.added, grid, config)
-            lattice = link.lattice
-            window, occupied, free = observe.observed(local_state, grid, lattice)
-            slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()
-            slam_sha = (files.manifest.checksums or {}).get(slam_rel) or sha256_file(
-                files.slam_image
-            )
-            return Observation(
-                map_name=link.name,
-                bundle_id=bundle_id,
-                fingerprint=observe.fingerprint((bundle_dir / MANIFEST).read_bytes(), slam_sha),
-                robot=files.manifest.robot,
-                stamp=files.manifest.stamp,
-                bundle_version=link.bundle_version,
-                judged_version=link.current_version,
-                window=window,
-                occupied=occupied,
-                free=free,
-                found=tuple(
-                    observe.Found(d.kind, observe.cells_of(d.cells, grid, lattice)) for d in found
-                ),
-                result_cells=tuple(
-                    (d.kind, observe.cells_of(d.cells, grid, lattice)) for d in differences
-                ),
-                tiles=fleet_evidence.pack_tiles(window, occupied, free),
-            )
 
-        observation = stages.run("observe", _observe)
+def _render(
+    bundle_id: str,
+    files: BundleFiles,
+    aligned: _Aligned,
+    found: _Found,
+    route_xy: np.ndarray | None,
+    banner: str | None,
+    config: Config,
+) -> dict[str, bytes]:
+    """``overlay.png`` and ``diff.png``, PNG bytes: the window of ``aligned.view.grid`` around
+    the ROI."""
+    r = config.pipeline.render
+    view = aligned.view
+    region, masks, differences = found.region, found.masks, found.differences
+    window = render.window_for(
+        view.grid, region.mask, margin_m=r.margin_m, max_side_px=r.max_side_px
+    )
+    title = f"{bundle_id}  robot {files.manifest.robot}  {files.manifest.stamp}"
+    over = render.overlay(
+        view.grid,
+        window,
+        view.state,
+        aligned.local_state,
+        region.polygon,
+        differences,
+        route_xy=route_xy,
+        title=title,
+        banner=banner,
+        left_out=aligned.left_out,
+    )
+    dimg = render.diff_image(view.grid, window, view.state, masks.added, masks.removed, differences)
+    return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
 
+
+def _observe(
+    link: MapLink | None,
+    bundle_dir: Path,
+    bundle_id: str,
+    inputs: _Inputs,
+    aligned: _Aligned,
+    found: _Found,
+    config: Config,
+) -> tuple[Observation | None, list[str]]:
+    """What the bundle contributes to the stored map ``link`` names (None: nothing), and the
+    warning that says why not."""
+    if link is None:
+        return None, []
+    if not aligned.compared:
+        return None, [
+            f"map {link.name}: the alignment is not trusted; this bundle adds nothing "
+            "to the fleet map"
+        ]
+    judged = found.differences
+    if link.current_version != link.bundle_version:
+        judged = _judged_on_current(link, inputs, aligned, found, config)
+    observation = _observation(
+        link, bundle_dir, bundle_id, inputs.files, aligned, judged, found.differences
+    )
+    return observation, []
+
+
+def _judged_on_current(
+    link: MapLink, inputs: _Inputs, aligned: _Aligned, found: _Found, config: Config
+) -> list[cluster_stage.Difference]:
+    """The differences of the aligned local map against the stored map's current version (on
+    ``aligned.view.grid``), found as ``found``'s were against the bundle's own version."""
+    view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
+    # Judged against the version the fleet navigates on now, not the robot's copy.
+    current = GLOBAL_MAPS.load(
+        link.current_yaml,
+        link.current_yaml.parent / map_image_name(link.current_yaml),
+        max_pixels=config.max_image_pixels,
+    )
+    state = resample(current.state, Grid.of_map(current), grid)
+    own = view.state if view.raw_state is None else view.raw_state
+    same = state == own
+    structure = (view.structure & same) | (state == OCCUPIED)
+    if view.raw_state is not None:
+        # The drawing's walls, where no published change has touched them.
+        state = np.where(same & (view.state == OCCUPIED), OCCUPIED, state)
+        state = state.astype(np.uint8)
+    roi_mask, local, drifted = found.region.mask, inputs.local, found.refit
+    fleet_masks, removal_current = _diff_masks(
+        state, structure, local_state, roi_mask, grid, config, local, inputs.global_map
+    )
+    judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
+    if drifted and judged:
+        judged = _refit(judged, view, local_state, fleet_masks.added, grid, config)
+    return judged
+
+
+def _observation(
+    link: MapLink,
+    bundle_dir: Path,
+    bundle_id: str,
+    files: BundleFiles,
+    aligned: _Aligned,
+    found: list[cluster_stage.Difference],
+    differences: list[cluster_stage.Difference],
+) -> Observation:
+    """The observation of the stored map's cells the aligned local map makes: what it saw, the
+    differences ``found`` against the current version and those ``result.yaml`` reports, on
+    the stored map's lattice."""
+    grid, lattice = aligned.view.grid, link.lattice
+    window, occupied, free = observe.observed(aligned.local_state, grid, lattice)
+    slam_rel = files.slam_image.relative_to(bundle_dir).as_posix()
+    slam_sha = (files.manifest.checksums or {}).get(slam_rel) or sha256_file(files.slam_image)
+    return Observation(
+        map_name=link.name,
+        bundle_id=bundle_id,
+        fingerprint=observe.fingerprint((bundle_dir / MANIFEST).read_bytes(), slam_sha),
+        robot=files.manifest.robot,
+        stamp=files.manifest.stamp,
+        bundle_version=link.bundle_version,
+        judged_version=link.current_version,
+        window=window,
+        occupied=occupied,
+        free=free,
+        found=tuple(observe.Found(d.kind, observe.cells_of(d.cells, grid, lattice)) for d in found),
+        result_cells=tuple((d.kind, observe.cells_of(d.cells, grid, lattice)) for d in differences),
+        tiles=fleet_evidence.pack_tiles(window, occupied, free),
+    )
+
+
+def _result_doc(
+    bundle_id: str,
+    inputs: _Inputs,
+    alignment_doc: dict[str, Any],
+    found: _Found,
+    warnings: list[str],
+    timings_ms: dict[str, float],
+    observation: Observation | None,
+) -> dict[str, Any]:
+    """The ``result.yaml`` document (contract section 3), stamped with the time now."""
+    files, global_map = inputs.files, inputs.global_map
+    region, differences = found.region, found.differences
     image_name = global_map.image.name if global_map.image is not None else ""
     result: dict[str, Any] = {
         "format": 1,
@@ -909,8 +1044,111 @@ def process_bundle(
         "roi": {"strategy": region.strategy, "polygon": [list(p) for p in region.polygon]},
         "differences": [_difference_doc(i, d) for i, d in enumerate(differences, start=1)],
         "warnings": warnings,
-        "timings_ms": dict(stages.timings_ms),
+        "timings_ms": dict(timings_ms),
     }
+    if observation is not None:
+        result["map"]["name"] = observation.map_name
+        result["map"]["version"] = observation.bundle_version
+    return result
+
+
+def process_bundle(
+    bundle_dir: Path,
+    config: Config,
+    *,
+    bundle_id: str | None = None,
+    checksums_verified: bool = False,
+) -> Outcome:
+    """Process one complete bundle. Raises a :class:`~mapserver.errors.MapserverError` subclass
+    for bad input (its ``stage`` says where it failed). Reads the inputs, never modifies them.
+
+    ``checksums_verified``: the manifest's checksums were checked against these very files
+    already (the daemon does when it takes a bundle), so they are not hashed again.
+    """
+    bundle_dir = Path(bundle_dir)
+    check_bundle_dir(bundle_dir)
+    bundle_id = _bundle_id(bundle_dir, bundle_id)
+    stages = _Stages(bundle_id)
+    settings = config.pipeline
+    inputs = stages.run(
+        "load", partial(_load, bundle_dir, config, checksums_verified=checksums_verified)
+    )
+    files, local = inputs.files, inputs.local
+    warnings = list(inputs.global_map.warnings) + list(local.warnings)
+    # The stored map this bundle's global map is a version of (maps: set), looked up once:
+    # alignment reads a floor-plan drawing's walls from its version 1, the fleet update needs
+    # it after.
+    link_warnings: list[str] = []
+    link = _map_link(config.maps, files, inputs.global_map, bundle_dir, link_warnings)
+    drawing = _drawing(link, config)
+
+    search_view, alignment = stages.run("align", partial(_align, inputs, config, drawing))
+    warnings += alignment.warnings
+    pieces = None
+    if not alignment.trusted and settings.align.pieces:
+        pieces = stages.run(
+            "pieces", partial(_align_in_pieces, files, local, search_view, alignment, config)
+        )
+    warped = stages.run("warp", partial(_warp, local, search_view, alignment, pieces, config))
+    transform = _reported_transform(local, alignment, warped)
+    misfit_m = settings.diff.max_misfit_tolerance_m
+    unfit = None
+    if (alignment.trusted or warped.in_pieces) and settings.align.fit_check:
+        unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
+    if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
+        # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
+        # correction. Aligned in pieces, each region fits on its own or is left out.
+        pieces = stages.run(
+            "pieces",
+            partial(_align_in_pieces, files, local, search_view, alignment, config, bent=True),
+        )
+        if pieces is not None and pieces.trusted:
+            warped = stages.run("warp", partial(_warp_pieces, local, search_view, pieces, config))
+            unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
+    aligned = _aligned(local, alignment, pieces, warped, transform, unfit)
+    if aligned.in_pieces:
+        # The pieces' warning stands for the whole map's alignment warnings.
+        warnings = [w for w in warnings if w not in alignment.warnings]
+    warnings += aligned.warnings
+    if aligned.drift_m > 0.1:
+        log.info("%s: drift corrected, up to %.2f m", bundle_id, aligned.drift_m)
+    grid, local_state = aligned.view.grid, aligned.local_state
+    route_xy = _route_nav2(files, aligned.transform)  # the trajectory ROI and the overlay draw it
+
+    region = stages.run(
+        "roi",
+        partial(_make_roi, config, files, aligned.transform, route_xy, local_state, grid, warnings),
+    )
+    masks, evidence = stages.run("diff", partial(_diff, aligned, region.mask, inputs, config))
+    # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are
+    # not reported, and a difference that a small local re-fit of the walls around it
+    # explains is a wall seen twice.
+    refit = aligned.compared and (aligned.drift_m >= _REFIT_DRIFT_M or aligned.in_pieces)
+    differences = stages.run(
+        "cluster", partial(_cluster_masks, masks, evidence, grid, config, local, drifted=refit)
+    )
+    if refit and differences:
+        differences = stages.run(
+            "refit",
+            partial(_refit, differences, aligned.view, local_state, masks.added, grid, config),
+        )
+    found = _Found(region, masks, differences, refit)
+
+    alignment_doc = _alignment_doc(alignment, aligned, local, settings.align.min_score)
+    notice = trust_notice(alignment_doc)
+    images = stages.run(
+        "render", partial(_render, bundle_id, files, aligned, found, route_xy, notice, config)
+    )
+    observation = None
+    if config.maps is not None:
+        contribution = partial(
+            _observe, link, bundle_dir, bundle_id, inputs, aligned, found, config
+        )
+        observation, observe_warnings = stages.run("observe", contribution)
+        warnings += link_warnings + observe_warnings
+
+    timings = stages.timings_ms
+    result = _result_doc(bundle_id, inputs, alignment_doc, found, warnings, timings, observation)
     log.info(
         "%s: done, %d differences, alignment %s score %.2f, %.0f ms",
         bundle_id,
@@ -919,7 +1157,4 @@ def process_bundle(
         alignment.score,
         sum(stages.timings_ms.values()),
     )
-    if observation is not None:
-        result["map"]["name"] = observation.map_name
-        result["map"]["version"] = observation.bundle_version
     return Outcome(bundle_id, result, images, observation)
