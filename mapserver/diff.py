@@ -190,7 +190,7 @@ def _near_face(
     (H, W) bool on ``box``."""
     # Deep: every cell within the tolerance (a square: cheap, and never deeper than the disc
     # says) drawn occupied.
-    k = math.ceil(tolerance_m / resolution) + 1
+    k = math.ceil(tolerance_m / resolution)
     face = cv2.erode(g_occ.view(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)) == 0
     if extra_tolerance_m is not None:
         # Where the walls do not fit (drift left over), any wall may be one seen displaced.
