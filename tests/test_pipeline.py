@@ -218,3 +218,19 @@ def test_an_unexpected_failure_names_the_stage(
         process_bundle(bundle, Config())
     assert info.value.stage == "cluster"
     assert "IndexError" in info.value.reason
+
+
+def test_a_stage_that_runs_twice_reports_the_time_of_both_runs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bent map runs pieces, warp and fit a second time: timings_ms must hold both runs,
+    not the second alone (the first run's time was lost from result.yaml and the log)."""
+    from mapserver import pipeline
+
+    clock = iter([0.0, 0.010, 1.0, 1.030, 2.0, 2.005])  # warp 10 ms, warp 30 ms, fit 5 ms
+    monkeypatch.setattr(pipeline.time, "perf_counter", lambda: next(clock))
+    stages = pipeline._Stages("b")
+    stages.run("warp", lambda: None)
+    stages.run("warp", lambda: None)
+    stages.run("fit", lambda: None)
+    assert stages.timings_ms == {"warp": 40.0, "fit": 5.0}
