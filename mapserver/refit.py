@@ -129,7 +129,7 @@ def ghost_of_wall(
     resolution: float,
     tolerance_m: float,
     reach_m: float = 1.5,
-    shift_m: float = 0.5,
+    shift_m: float = 0.8,
     turn_deg: float = 3.0,
     min_length_m: float = 1.5,
     max_width_m: float = 0.2,
