@@ -186,15 +186,25 @@ def _near_face(
     resolution: float,
 ) -> BoolArray:
     """Cells within ``tolerance_m`` of a cell the global map does not draw occupied (outside its
-    structures or along their faces), and every cell where the misfit adds to the tolerance.
-    (H, W) bool on ``box``."""
+    structures or along their faces), or of the edge of ``box`` (what lies past it is not
+    looked at: taken as open), and every cell within the widest tolerance of a cell where the
+    misfit adds to it. (H, W) bool on ``box``; ``g_occ`` is the global map's occupied cells
+    there."""
     # Deep: every cell within the tolerance (a square: cheap, and never deeper than the disc
     # says) drawn occupied.
     k = math.ceil(tolerance_m / resolution)
-    face = cv2.erode(g_occ.view(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)) == 0
+    square = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
+    deep = cv2.erode(g_occ.view(np.uint8), square, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    face = deep == 0
     if extra_tolerance_m is not None:
-        # Where the walls do not fit (drift left over), any wall may be one seen displaced.
-        face |= extra_tolerance_m[box] > 0
+        # Where the walls do not fit (drift left over), any wall may be one seen displaced: as
+        # far from such a cell as its tolerance reaches.
+        extra = extra_tolerance_m[box]
+        loose = extra > 0
+        if loose.any():
+            reach = k + math.ceil(float(extra.max()) / resolution)
+            grow = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1, 2 * reach + 1))
+            face |= cv2.dilate(loose.view(np.uint8), grow) > 0
     return np.asarray(face)
 
 

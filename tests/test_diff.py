@@ -541,3 +541,38 @@ def test_a_wall_seen_off_inside_a_block_still_has_the_removed_tolerance() -> Non
     roi = np.ones(g.shape, bool)
     kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
     assert not raw_differences(g, loc, roi, **kw).removed.any()
+
+
+def test_where_the_comparison_box_ends_does_not_make_a_face_deep() -> None:
+    """A block from column 44 with its face seen at column 45 (one cell in: misalignment) and
+    free cells behind it: whether the ROI starts at column 0 or at column 50, the cells within
+    the removed tolerance of that face are not removed (the box must not read the open space
+    just outside it as more block)."""
+    g = np.full((40, 100), FREE, np.uint8)
+    g[:, 44:] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:, :45] = FREE
+    loc[:, 45] = OCCUPIED
+    loc[:, 46:61] = FREE
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    whole = raw_differences(g, loc, np.ones(g.shape, bool), **kw).removed
+    part_roi = np.zeros(g.shape, bool)
+    part_roi[:, 50:] = True
+    part = raw_differences(g, loc, part_roi, **kw).removed
+    assert not whole[:, 46:50].any()  # within 0.25 m of the face seen: misalignment
+    assert np.array_equal(part[:, 50:], whole[:, 50:])
+
+
+def test_a_wall_beside_a_tile_that_does_not_fit_still_has_the_wider_tolerance() -> None:
+    """Removed cells in a tile whose walls sit off (extra tolerance 0.3 m), the face that
+    explains them just across the tile's edge, where the walls fit: it is still a face."""
+    g = np.full((60, 60), FREE, np.uint8)
+    g[20:, :] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:28, :] = FREE
+    loc[28, :] = OCCUPIED  # the block's face seen 0.4 m in
+    extra = np.zeros(g.shape, np.float32)
+    extra[:26, :] = 0.3
+    kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
+    removed = raw_differences(g, loc, np.ones(g.shape, bool), **kw, extra_tolerance_m=extra).removed
+    assert not removed.any()
