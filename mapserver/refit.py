@@ -136,9 +136,10 @@ def ghost_of_wall(
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
     second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool), a line
-    at least ``min_length_m`` long that one rigid move of at most ``shift_m`` and ``turn_deg``
-    lays, 80 % of it, within ``tolerance_m`` of a global wall the local map also shows in place;
-    the difference itself no wider across that line than ``max_width_m``.
+    at least ``min_length_m`` long that one move across itself of at most ``shift_m`` (and a
+    turn of at most ``turn_deg``) lays, 80 % of it and 80 % of the difference, within
+    ``tolerance_m`` of a global wall the local map also shows in place; the difference itself
+    no wider across that line than ``max_width_m`` (its cells' 5-95 % spread).
 
     The walls around a revisit's second copy fit where they are (the first copy lies on the
     global wall), so :func:`explained_by_refit` keeps it; the copy itself fits once moved. A
@@ -184,15 +185,28 @@ def ghost_of_wall(
     # Moves across the line only: slid along itself, any line lands on any wall it continues.
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = (axis[1] * steps)[:, None], (-axis[0] * steps)[:, None]
-    best = 0.0
-    for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
-        ct, st = math.cos(turn), math.sin(turn)
-        qr = centre_r + (pr - centre_r) * ct - (pc - centre_c) * st
-        qc = centre_c + (pr - centre_r) * st + (pc - centre_c) * ct
+    own_r, own_c = (rows - r0).astype(float), (cols - c0).astype(float)
+
+    def landed(
+        r: NDArray[np.float64], c: NDArray[np.float64], ct: float, st: float
+    ) -> NDArray[np.float64]:
+        """The share of the points (r, c) on a wall seen in place, for each move (turn, then
+        each shift across the line)."""
+        qr = centre_r + (r - centre_r) * ct - (c - centre_c) * st
+        qc = centre_c + (r - centre_r) * st + (c - centre_c) * ct
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
-        best = max(best, float(near_target[ir, ic].mean(axis=1).max()))
-    return best >= _EXPLAINED_SHARE
+        return np.asarray(near_target[ir, ic].mean(axis=1))
+
+    for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
+        ct, st = math.cos(turn), math.sin(turn)
+        # The line and the difference itself, by the same move (a box beside a wall seen
+        # twice is near the line, not on it).
+        line = landed(pr.astype(float), pc.astype(float), ct, st)
+        own = landed(own_r, own_c, ct, st)
+        if ((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE)).any():
+            return True
+    return False
 
 
 __all__ = ["explained_by_refit", "ghost_of_wall"]

@@ -3,6 +3,8 @@ after drift, not a change (mapserver/refit.py)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -91,7 +93,9 @@ def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost(off_px: int) -> Non
     # A revisit drew 3 m of the wall again 0.35 or 0.75 m off, as sparse hits, 1 degree turned.
     cols = np.arange(40, 100, 2)
     ghost = np.zeros(glob.shape, bool)
-    ghost[40 + off_px + (cols - 40) // 60, cols] = True
+    turned = np.rint((cols - 40) * math.tan(math.radians(1.0))).astype(int)
+    assert turned.max() == 1  # really turned: one row over its 3 m
+    ghost[40 + off_px + turned, cols] = True
     local |= ghost
     piece = ghost.copy()
     piece[:, 70:] = False  # DBSCAN cut the line in pieces; one of them is judged
@@ -140,3 +144,20 @@ def test_a_short_line_beside_a_wall_is_no_ghost() -> None:
     face[47, 60:72] = True
     local |= face
     assert not ghost_of_wall(cells(face), face, glob, local, resolution=RES, tolerance_m=0.15)
+
+
+def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
+    """A 0.2 x 0.3 m box 0.7 m from a ghost line: the line lands on the wall when moved, the
+    box does not (it is near the line, not on it)."""
+    from mapserver.refit import ghost_of_wall
+
+    glob, local = _corridor()
+    ghost = np.zeros(glob.shape, bool)
+    ghost[47:49, 20:140] = True
+    box = np.zeros(glob.shape, bool)
+    box[62:66, 76:82] = True
+    added = ghost | box
+    local |= added
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert not ghost_of_wall(cells(box), added, glob, local, **kw)
+    assert ghost_of_wall(cells(ghost & (np.arange(160) < 80)), added, glob, local, **kw)
