@@ -521,7 +521,9 @@ def _reached_from_open_space(
 ) -> BoolArray:
     """Cells connected to open space (free in both maps) through cells the local map sees
     free, without crossing a wall it sees (its hits grown by ``_FACE_GAP_M``, closing the
-    gaps between sparse hits on one face). (H, W) bool."""
+    gaps between sparse hits on one face); then the free cells of that grown band next to
+    them, up to ``_FACE_GAP_M`` away in steps along rows and columns (the foot of the wall a
+    ray ended at). (H, W) bool."""
     k = max(1, round(_FACE_GAP_M / resolution))
     walls = (local_state == OCCUPIED).view(np.uint8)
     barrier = cv2.dilate(walls, np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0
