@@ -16,6 +16,7 @@ whatever small move the surrounding walls allow; a removed wall stays free.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
@@ -53,10 +54,7 @@ def explained_by_refit(
     cells then within ``tolerance_m`` of a global wall, of a removed one's within
     ``removed_tolerance_m`` of a moved local wall."""
     rows, cols = cells[:, 0], cells[:, 1]
-    h, w = global_walls.shape
-    reach = math.ceil((margin_m + shift_m) / resolution) + 2
-    r0, c0 = max(int(rows.min()) - reach, 0), max(int(cols.min()) - reach, 0)
-    r1, c1 = min(int(rows.max()) + reach + 1, h), min(int(cols.max()) + reach + 1, w)
+    r0, r1, c0, c1 = _window(rows, cols, margin_m + shift_m, resolution, global_walls.shape)
     g = global_walls[r0:r1, c0:c1]
     lw = local_walls[r0:r1, c0:c1]
     if not g.any():
@@ -88,8 +86,7 @@ def explained_by_refit(
     best = (np.inf, 0.0, 0.0, 0.0)
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
         ct, st = math.cos(turn), math.sin(turn)
-        qr = centre_r + (pr - centre_r) * ct - (pc - centre_c) * st
-        qc = centre_c + (pr - centre_r) * st + (pc - centre_c) * ct
+        qr, qc = _turned(pr, pc, (centre_r, centre_c), ct, st)
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         cost = field[ir, ic].mean(axis=1) + slide_cost
@@ -100,8 +97,8 @@ def explained_by_refit(
     ct, st = math.cos(turn), math.sin(turn)
 
     def moved(r: NDArray[np.intp], c: NDArray[np.intp]) -> tuple[NDArray[np.intp], ...]:
-        qr = centre_r + (r - centre_r) * ct - (c - centre_c) * st + sy
-        qc = centre_c + (r - centre_r) * st + (c - centre_c) * ct + sx
+        qr, qc = _turned(r, c, (centre_r, centre_c), ct, st)
+        qr, qc = qr + sy, qc + sx
         return (
             np.clip(np.rint(qr), 0, g.shape[0] - 1).astype(np.intp),
             np.clip(np.rint(qc), 0, g.shape[1] - 1).astype(np.intp),
@@ -147,10 +144,7 @@ def ghost_of_wall(
     stretch of wall seen twice.
     """
     rows, cols = cells[:, 0], cells[:, 1]
-    h, w = global_walls.shape
-    reach = math.ceil((reach_m + shift_m) / resolution) + 2
-    r0, c0 = max(int(rows.min()) - reach, 0), max(int(cols.min()) - reach, 0)
-    r1, c1 = min(int(rows.max()) + reach + 1, h), min(int(cols.max()) + reach + 1, w)
+    r0, r1, c0, c1 = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
     tol_px = tolerance_m / resolution
     # Global walls the local map shows in place too: the first copy of the wall.
     g = global_walls[r0:r1, c0:c1]
@@ -192,8 +186,7 @@ def ghost_of_wall(
     ) -> NDArray[np.float64]:
         """The share of the points (r, c) on a wall seen in place, for each move (turn, then
         each shift across the line)."""
-        qr = centre_r + (r - centre_r) * ct - (c - centre_c) * st
-        qc = centre_c + (r - centre_r) * st + (c - centre_c) * ct
+        qr, qc = _turned(r, c, (centre_r, centre_c), ct, st)
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         return np.asarray(near_target[ir, ic].mean(axis=1))
@@ -207,6 +200,32 @@ def ghost_of_wall(
         if ((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE)).any():
             return True
     return False
+
+
+def _window(
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    reach_m: float,
+    resolution: float,
+    shape: tuple[int, ...],
+) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1): the cells' bounding box grown by ``reach_m`` (and two cells), within
+    ``shape``."""
+    reach = math.ceil(reach_m / resolution) + 2
+    h, w = shape[0], shape[1]
+    r0, c0 = max(int(rows.min()) - reach, 0), max(int(cols.min()) - reach, 0)
+    r1, c1 = min(int(rows.max()) + reach + 1, h), min(int(cols.max()) + reach + 1, w)
+    return r0, r1, c0, c1
+
+
+def _turned(
+    r: NDArray[Any], c: NDArray[Any], centre: tuple[float, float], ct: float, st: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(row, col) points turned about ``centre`` by the angle of cosine ``ct``, sine ``st``."""
+    centre_r, centre_c = centre
+    qr = centre_r + (r - centre_r) * ct - (c - centre_c) * st
+    qc = centre_c + (r - centre_r) * st + (c - centre_c) * ct
+    return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
 __all__ = ["explained_by_refit", "ghost_of_wall"]
