@@ -647,7 +647,8 @@ class _Warped:
 
     ``in_pieces``: through the trusted pieces' own transforms, ``left_out`` the cells the
     untrusted pieces land on (else None). ``drift``: the drift correction applied on top of the
-    rigid transform (None: none), ``drift_m`` its largest shift, metres (0 in pieces).
+    rigid transform (None: none, or in pieces), ``drift_m`` its largest shift, metres (in
+    pieces: the largest of the pieces' own corrections).
     """
 
     view: align_stage.GlobalView
@@ -711,7 +712,8 @@ def _warp_pieces(
     """The trusted pieces, each through its own transform (and drift correction), and the cells
     the untrusted ones land on; the view cropped to both with the views' margin."""
     grid = search_view.grid
-    warp_piece = partial(_warp_piece, search_view, config)
+    shifts: list[float] = []
+    warp_piece = partial(_warp_piece, search_view, config, shifts)
     state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
     x, y, w, h = cv2.boundingRect(((state != UNKNOWN) | out).view(np.uint8))
     m = math.ceil(_view_margin_m(config) / grid.resolution)
@@ -722,17 +724,28 @@ def _warp_pieces(
         min(x + w + m, grid.width),
     )
     r0, r1, c0, c1 = box
-    return _Warped(search_view.cropped(box), state[r0:r1, c0:c1], out[r0:r1, c0:c1], in_pieces=True)
+    return _Warped(
+        search_view.cropped(box),
+        state[r0:r1, c0:c1],
+        out[r0:r1, c0:c1],
+        in_pieces=True,
+        drift_m=max(shifts, default=0.0),
+    )
 
 
 def _warp_piece(
-    view: align_stage.GlobalView, config: Config, part: OccupancyMap, transform: Transform2D
+    view: align_stage.GlobalView,
+    config: Config,
+    shifts: list[float],
+    part: OccupancyMap,
+    transform: Transform2D,
 ) -> np.ndarray:
     """One piece's states on ``view``'s grid: through ``transform`` and its own drift
-    correction (``deform`` on)."""
+    correction (``deform`` on), whose largest shift (metres) is appended to ``shifts``."""
     drift = None
     if config.pipeline.align.deform:
         drift = _estimate_drift(part, transform, view, config, reach_m=_drift_reach_m(config))
+        shifts.append(drift.max_shift_m())
     return deform.warp_local(part, view.grid, transform, drift)
 
 

@@ -186,6 +186,18 @@ def test_a_moderate_kink_is_not_trusted_whole(tmp_path: Path, bend_deg: float) -
         ), (x0, r["differences"])
 
 
+def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
+    """Each trusted piece gets its own drift correction; ``alignment.drift_m`` is the largest of
+    them (it said 0 for every bundle aligned in pieces)."""
+    fit_check = Config().pipeline.align.model_copy(update={"fit_check": True})
+    config = Config().model_copy(
+        update={"pipeline": Config().pipeline.model_copy(update={"align": fit_check})}
+    )
+    a = process_bundle(_bent_bundle(tmp_path / "bent", 12.0), config).result["alignment"]
+    assert a["method"].endswith("+pieces") and a["trusted_pieces"] == 2
+    assert 0.0 < a["drift_m"] <= Config().pipeline.align.deform_max_shift_m
+
+
 def test_compose_keeps_only_trusted_pieces_and_marks_the_rest_left_out() -> None:
     state = np.full((40, 60), UNKNOWN, np.uint8)
     state[10:30, 5:55] = 0  # FREE
