@@ -301,6 +301,10 @@ class Service:
             observer = self._start_observer()
             try:
                 self._rescan()
+                # The status file first: once the daemon says it is ready, `mapserver status`
+                # can read it, and a disk that fills right after still has its block to rewrite
+                # in place (a first write on a full disk has none).
+                self._write_status()
                 log.info(
                     "ready: watching %s with the %s observer, %d workers; %d inbox entries "
                     "waiting, %d bundles in hand from before",
@@ -311,7 +315,6 @@ class Service:
                     len(recovered),
                 )
                 notify("READY=1", self._status())
-                self._write_status()
                 self.ready.set()
                 code = self._loop(observer)
             finally:

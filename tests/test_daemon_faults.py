@@ -135,6 +135,20 @@ def test_a_full_disk_keeps_two_good_bundles_waiting_and_does_each_once_when_spac
         assert "failed at stage" not in log
 
 
+def test_the_status_file_is_there_when_the_daemon_says_it_is_ready(tmp_path: Path) -> None:
+    """The first status file is written before the "ready" line (and READY=1): a disk that
+    fills at once after still has that file's block to rewrite in place. Written after it, a
+    test (or an operator) that filled the disk on "ready" left the daemon without any status
+    file to say it was degraded (the CI failure of the full-disk test above)."""
+    disk = tmp_path / "disk"
+    with small_disk(disk), Daemon(on_disk(disk, tmp_path, settle_seconds=1.0)) as daemon:
+        daemon.wait_ready()
+        status = read_status(disk / "inbox")  # no waiting: it must be there already
+        assert status is not None and status["pid"] == daemon.process.pid
+        assert status["degraded"] is None
+        assert daemon.stop() == 0, daemon.log()
+
+
 def test_a_filesystem_gone_read_only_leaves_the_upload_in_the_inbox_until_it_is_writable(
     tmp_path: Path,
 ) -> None:
