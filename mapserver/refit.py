@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.diff import distance_to
+from mapserver.diff import distance_to, near, offset_distances
 from mapserver.grid import nonzero_cells
 
 BoolArray = NDArray[np.bool_]
@@ -146,10 +146,12 @@ def ghost_of_wall(
     rows, cols = cells[:, 0], cells[:, 1]
     r0, r1, c0, c1 = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
     tol_px = tolerance_m / resolution
+    # Within the tolerance of a mask: a dilation by these offsets (diff.near), not a distance
+    # transform.
+    within = ~(offset_distances(tol_px) > tol_px)
     # Global walls the local map shows in place too: the first copy of the wall.
     g = global_walls[r0:r1, c0:c1]
-    seen = distance_to(local_walls[r0:r1, c0:c1]) <= tol_px
-    target = g & seen
+    target = g & near(local_walls[r0:r1, c0:c1], within)
     if not target.any():
         return False
     mark = np.zeros(g.shape, np.uint8)
@@ -161,21 +163,19 @@ def ghost_of_wall(
         return False
     # Long enough to be a stretch of wall: its extent along its main axis.
     pts = np.stack([pr, pc], axis=1).astype(float)
-    centred = pts - pts.mean(axis=0)
+    centre = pts.mean(axis=0)
+    centred = pts - centre
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
     along = centred @ axis
     if float(along.max() - along.min()) * resolution < min_length_m:
         return False
     # The difference itself a piece of that line, thin across it (a wall seen again is one
     # line of hits; a box or a column beside a wall seen twice has a depth of its own).
-    across = (np.stack([rows - r0, cols - c0], axis=1) - pts.mean(axis=0)) @ np.array(
-        [axis[1], -axis[0]]
-    )
+    across = (np.stack([rows - r0, cols - c0], axis=1) - centre) @ np.array([axis[1], -axis[0]])
     lo, hi = np.percentile(across, [5, 95])
     if float(hi - lo) * resolution > max_width_m:
         return False
-    near_target = distance_to(target) <= tol_px
-    centre_r, centre_c = float(pr.mean()), float(pc.mean())
+    near_target = near(target, within)
     # Moves across the line only: slid along itself, any line lands on any wall it continues.
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = (axis[1] * steps)[:, None], (-axis[0] * steps)[:, None]
@@ -186,7 +186,7 @@ def ghost_of_wall(
     ) -> NDArray[np.float64]:
         """The share of the points (r, c) on a wall seen in place, for each move (turn, then
         each shift across the line)."""
-        qr, qc = _turned(r, c, (centre_r, centre_c), ct, st)
+        qr, qc = _turned(r, c, (float(centre[0]), float(centre[1])), ct, st)
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         return np.asarray(near_target[ir, ic].mean(axis=1))
