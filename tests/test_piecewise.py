@@ -170,10 +170,7 @@ def test_a_moderate_kink_is_not_trusted_whole(tmp_path: Path, bend_deg: float) -
     """A kink one rigid fit scores over min_score (0.63 at 12 degrees) leaves the far side's
     walls off the building: it is aligned in pieces, and the planted box in each is found
     with nothing else reported."""
-    fit_check = Config().pipeline.align.model_copy(update={"fit_check": True})
-    config = Config().model_copy(
-        update={"pipeline": Config().pipeline.model_copy(update={"align": fit_check})}
-    )
+    config = _with(Config(), "align", fit_check=True)
     r = process_bundle(_bent_bundle(tmp_path / "bent", bend_deg), config).result
     assert r["alignment"]["trusted"] is True and r["alignment"]["pieces"] == 2
     assert len(r["differences"]) <= 4, len(r["differences"])
@@ -189,10 +186,7 @@ def test_a_moderate_kink_is_not_trusted_whole(tmp_path: Path, bend_deg: float) -
 def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
     """Each trusted piece gets its own drift correction; ``alignment.drift_m`` is the largest of
     them (it said 0 for every bundle aligned in pieces)."""
-    fit_check = Config().pipeline.align.model_copy(update={"fit_check": True})
-    config = Config().model_copy(
-        update={"pipeline": Config().pipeline.model_copy(update={"align": fit_check})}
-    )
+    config = _with(Config(), "align", fit_check=True)
     a = process_bundle(_bent_bundle(tmp_path / "bent", 12.0), config).result["alignment"]
     assert a["method"].endswith("+pieces") and a["trusted_pieces"] == 2
     assert 0.0 < a["drift_m"] <= Config().pipeline.align.deform_max_shift_m

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mapserver.grid import nonzero_cells
-from mapserver.refit import explained_by_refit
+from mapserver.refit import explained_by_refit, ghost_of_wall
 
 RES = 0.05
 KW = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
@@ -87,8 +87,6 @@ def _corridor() -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("off_px", [7, 15])
 def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost(off_px: int) -> None:
-    from mapserver.refit import ghost_of_wall
-
     glob, local = _corridor()
     # A revisit drew 3 m of the wall again 0.35 or 0.75 m off, as sparse hits, 1 degree turned.
     cols = np.arange(40, 100, 2)
@@ -105,8 +103,6 @@ def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost(off_px: int) -> Non
 def test_a_new_wall_beside_a_wall_occluding_it_is_no_ghost() -> None:
     """A new partition 0.35 m in front of the wall: the robot, on the open side, sees the new
     one and not the old one behind it; nothing the local map shows in place to be a copy of."""
-    from mapserver.refit import ghost_of_wall
-
     glob, local = _corridor()
     new = np.zeros(glob.shape, bool)
     new[47, 40:100] = True
@@ -118,8 +114,6 @@ def test_a_new_wall_beside_a_wall_occluding_it_is_no_ghost() -> None:
 def test_a_column_beside_a_wall_seen_twice_is_no_ghost() -> None:
     """The wall drawn again 0.35 m off, and a new column 0.4 m wide against that line: the
     line is a ghost, the column has a depth of its own."""
-    from mapserver.refit import ghost_of_wall
-
     glob, local = _corridor()
     added = np.zeros(glob.shape, bool)
     added[47, 40:120] = True
@@ -137,8 +131,6 @@ def test_a_column_beside_a_wall_seen_twice_is_no_ghost() -> None:
 
 def test_a_short_line_beside_a_wall_is_no_ghost() -> None:
     """A 0.6 m box face seen 0.35 m from a wall: too short to be a stretch of wall seen again."""
-    from mapserver.refit import ghost_of_wall
-
     glob, local = _corridor()
     face = np.zeros(glob.shape, bool)
     face[47, 60:72] = True
@@ -149,8 +141,6 @@ def test_a_short_line_beside_a_wall_is_no_ghost() -> None:
 def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
     """A 0.2 x 0.3 m box 0.7 m from a ghost line: the line lands on the wall when moved, the
     box does not (it is near the line, not on it)."""
-    from mapserver.refit import ghost_of_wall
-
     glob, local = _corridor()
     ghost = np.zeros(glob.shape, bool)
     ghost[47:49, 20:140] = True
