@@ -3,7 +3,7 @@
 A long session whose slam drift bends its map beyond what the smooth warp absorbs (or whose loop
 slam_toolbox closed badly) fails the rigid alignment as a whole, yet most of it fits the
 building. Here the local map is cut into pieces along the robot's route (each cell belongs to
-the piece of the route nearest to it), and each piece is aligned on its own, starting from its
+the piece of the route nearest to it through free space: the one that saw it), and each piece is aligned on its own, starting from its
 neighbour's transform (drift grows slowly along the route) and, for the first, from the
 whole-map transform. A piece is trusted when it scores at least ``min_score`` and its transform
 agrees with its trusted neighbour's where they meet. Only trusted pieces are compared.
@@ -69,6 +69,10 @@ class Pieces:
         return self.trusted_area_m2 / self.observed_area_m2 if self.observed_area_m2 > 0 else 0.0
 
 
+# Blocks (metres) on which cells are given to the run that saw them.
+_BLOCK_M = 0.2
+
+
 def route_pieces(route_slam: FloatArray, *, piece_m: float) -> list[FloatArray]:
     """Cut a route (N, 2) slam-frame metres into consecutive runs of about ``piece_m`` of path
     each (the last one joined to its predecessor when shorter than half of that). Neighbouring
@@ -86,31 +90,62 @@ def route_pieces(route_slam: FloatArray, *, piece_m: float) -> list[FloatArray]:
 
 
 def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.int32]:
-    """(H, W) int32 on the local map's grid: the index of the run nearest to each known cell
-    (the robot saw it from there, most likely), -1 for unknown cells."""
+    """(H, W) int32 on the local map's grid: the index of the run each known cell was most
+    likely seen from, -1 for unknown cells.
+
+    That is the run nearest to it through free space, never through a wall: a ray does not
+    cross one, and a cell behind a wall from the run nearest in a straight line was seen from
+    another part of the route (a revisit, whose drift the pieces are there to undo). It is
+    worked out on blocks of about ``_BLOCK_M`` (a block with a wall cell is a wall). Walls take
+    the run of a free block beside them; known cells that no run reaches through free space,
+    the run of the nearest block that one does.
+    """
+    h, w = local.state.shape
+    labels = np.full((h, w), -1, np.int32)
+    known = local.state != UNKNOWN
+    f = max(1, round(_BLOCK_M / local.resolution))
+    hh, ww = -(-h // f), -(-w // f)
+    pad = ((0, hh * f - h), (0, ww * f - w))
+
+    def blocks(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return np.asarray(np.pad(mask, pad).reshape(hh, f, ww, f).any(axis=(1, 3)))
+
+    wall = blocks(local.state == OCCUPIED)
+    passable = (blocks(local.state == FREE) & ~wall).astype(np.float32)
     grid = Grid.of_map(local)
-    seeds = np.zeros(local.state.shape, np.uint8)
-    owner = np.zeros(local.state.shape, np.int32)
+    plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
         # Dense points along the run, so that its whole path is a seed, not only its poses.
-        pts = _densify(run, local.resolution)
-        px = np.rint(grid.to_pixel(pts)).astype(np.int64)
-        ok = (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
-        seeds[px[ok, 1], px[ok, 0]] = 1
-        owner[px[ok, 1], px[ok, 0]] = i
-    labels = np.full(local.state.shape, -1, np.int32)
-    if not seeds.any():
+        px = np.rint(grid.to_pixel(_densify(run, local.resolution))).astype(np.int64)
+        ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        plus[px[ok, 1] // f, px[ok, 0] // f] = i + 1
+    if not plus.any():
         return labels
-    _, nearest = cv2.distanceTransformWithLabels(
-        (seeds == 0).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    # Each seed pixel has its own label; map labels to the run that owns that seed pixel.
-    seed_rows, seed_cols = np.nonzero(seeds)
-    label_of_seed = nearest[seed_rows, seed_cols]
-    run_of_label = np.zeros(int(nearest.max()) + 1, np.int32)
-    run_of_label[label_of_seed] = owner[seed_rows, seed_cols]
-    known = local.state != UNKNOWN
-    labels[known] = run_of_label[nearest[known]]
+    # Breadth first through free blocks from every run at once, each step only around the
+    # blocks the last one reached.
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    front = plus > 0
+    while True:
+        x, y, bw, bh = cv2.boundingRect(front.view(np.uint8))
+        if bw == 0:
+            break
+        win = (slice(max(y - 1, 0), y + bh + 1), slice(max(x - 1, 0), x + bw + 1))
+        grown = cv2.dilate(plus[win], cross) * passable[win]
+        new = (plus[win] == 0) & (grown > 0)
+        front = np.zeros_like(front)
+        front[win] = new
+        plus[win][new] = grown[new]
+    plus = np.where((plus == 0) & wall, cv2.dilate(plus, np.ones((3, 3), np.uint8)), plus)
+    if (plus == 0).any():
+        _, nearest = cv2.distanceTransformWithLabels(
+            (plus == 0).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        rows, cols = np.nonzero(plus)
+        run_of = np.zeros(int(nearest.max()) + 1, np.float32)
+        run_of[nearest[rows, cols]] = plus[rows, cols]
+        plus = run_of[nearest]
+    fine = np.repeat(np.repeat(plus.astype(np.int32) - 1, f, axis=0), f, axis=1)[:h, :w]
+    labels[known] = fine[known]
     return labels
 
 

@@ -17,7 +17,7 @@ from mapserver.bundle import sha256_file
 from mapserver.config import Config
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, resample
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states, save_map
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states, save_map
 from mapserver.pipeline import process_bundle
 from mapserver.trust import trust_notice
 
@@ -43,6 +43,56 @@ def test_route_pieces_cut_the_route_by_length() -> None:
         piecewise.route_pieces(route, piece_m=0)
 
 
+def test_a_cell_behind_a_wall_belongs_to_the_run_that_saw_it_not_the_nearest() -> None:
+    """Two corridors 10 m long (0.05 m cells), one above the other, a wall between them; the
+    route runs east along the lower one (run 0), then back west along the upper one (run 1).
+    The upper corridor's cells near the wall are nearer, in a straight line, to run 0 (0.4 m
+    below the wall) than to run 1 (1 m above it); the robot saw them from run 1."""
+    state = np.full((60, 200), UNKNOWN, np.uint8)
+    state[2:58, :] = FREE
+    state[30, :] = OCCUPIED  # the wall between the corridors (y = 1.5 m)
+    state[[1, 58], :] = OCCUPIED
+    local = from_states(state, 0.05, (0.0, 0.0, 0.0))
+    route = np.array([[0.5, 1.1], [9.5, 1.1], [9.5, 2.5], [0.5, 2.5]])  # y up: row 60 - y/0.05
+    runs = [route[:2], route[2:]]
+    labels = piecewise.label_cells(local, runs)
+    # Away from the turn, and from the wall's own block (0.2 m: the wall seen from both sides).
+    upper, lower = labels[4:26, 20:180], labels[35:56, 20:180]
+    assert (upper == 1).all() and (lower == 0).all()
+    assert (labels[state == UNKNOWN] == -1).all() and (labels[state != UNKNOWN] >= 0).all()
+
+
+def _seen_at(world: OccupancyMap, points_xy: np.ndarray, range_m: float = 12.0) -> np.ndarray:
+    """(H, W) float on the world's grid: the distance (m) from each cell to the nearest of
+    ``points_xy`` (N, 2) whose 360-degree lidar sees it (each ray up to the first wall, which
+    it sees); inf where none does."""
+    grid = Grid.of_map(world)
+    best = np.full(grid.shape, np.inf)
+    angles = np.radians(np.arange(0.0, 360.0, 0.5))
+    steps = np.arange(0.0, range_m, world.resolution / 2)
+    for x, y in points_xy:
+        px = grid.to_pixel(
+            np.stack(
+                [x + np.outer(np.cos(angles), steps), y + np.outer(np.sin(angles), steps)], axis=-1
+            ).reshape(-1, 2)
+        )
+        c = np.rint(px[:, 0]).astype(int).reshape(len(angles), -1)
+        r = np.rint(px[:, 1]).astype(int).reshape(len(angles), -1)
+        inside = (r >= 0) & (r < grid.height) & (c >= 0) & (c < grid.width)
+        wall = np.zeros(r.shape, bool)
+        wall[inside] = world.state[r[inside], c[inside]] == OCCUPIED
+        keep = inside & (np.cumsum(wall, axis=1) - wall == 0)  # up to the first wall
+        dist = np.broadcast_to(steps, r.shape)
+        np.minimum.at(best, (r[keep], c[keep]), dist[keep])
+    return best
+
+
+def _moved(mask: np.ndarray, grid: Grid, transform: Transform2D) -> np.ndarray:
+    """``mask`` resampled through ``transform`` (as the east part of the slam map is drawn)."""
+    state = np.where(mask, OCCUPIED, FREE).astype(np.uint8)
+    return resample(state, grid, grid, transform) == OCCUPIED
+
+
 def _bent_bundle(
     directory: Path,
     bend_deg: float,
@@ -60,14 +110,29 @@ def _bent_bundle(
     xy = grid.to_world(
         np.stack(np.meshgrid(np.arange(grid.width), np.arange(grid.height)), axis=-1).reshape(-1, 2)
     )
-    is_east = (xy[:, 0] > JUNCTION[0]).reshape(grid.shape)
-    state = np.where(is_east, east, west).astype(np.uint8)
+    # The route along the southern rooms' corridor side, west to east: 36 m, which the pieces
+    # (piece_m 20) cut in two at the junction, where the kink is.
+    nav2_route = np.stack([np.linspace(1.0, 37.0, 73), np.full(73, JUNCTION[1])], axis=1)
+    # A cell takes the drift of the part of the route the lidar saw it from (the nearer one when
+    # both did); a cell neither saw, of the part on its side of the junction.
+    west_of = nav2_route[:, 0] <= JUNCTION[0]
+    d_west = _seen_at(now, nav2_route[west_of][::2])
+    d_east = _seen_at(now, nav2_route[~west_of][::2])
+    by_side = (xy[:, 0] > JUNCTION[0]).reshape(grid.shape)
+    is_east = np.where(np.isfinite(d_west) | np.isfinite(d_east), d_east < d_west, by_side)
+    # Each part of the world drawn where its part of the route puts it: the eastern cells turned
+    # about the junction, the western ones in place. Where both land on one slam cell, a wall
+    # drawn by either stays a wall (slam_toolbox counts the hits); where neither does, unknown.
+    east_here = _moved(is_east, grid, bend.inverse())
+    west_here = ~is_east
+    state = np.full(grid.shape, UNKNOWN, np.uint8)
+    state[west_here] = west[west_here]
+    over = east_here & (~west_here | (state != OCCUPIED))
+    state[over] = east[over]
     local = from_states(state, world.resolution, world.origin)
     directory.mkdir(parents=True)
     save_map(directory / "slam_map.yaml", local.state, local.resolution, local.origin)
     save_map(directory / "nav2_map.yaml", world.state, world.resolution, world.origin)
-    # The route along the southern rooms' corridor side, west to east (slam frame).
-    nav2_route = np.stack([np.linspace(1.0, 36.0, 71), np.full(71, JUNCTION[1])], axis=1)
     slam_route = np.where(
         nav2_route[:, :1] > JUNCTION[0], bend.inverse().apply(nav2_route), nav2_route
     )
