@@ -3,9 +3,9 @@
 A long session whose slam drift bends its map beyond what the smooth warp absorbs (or whose loop
 slam_toolbox closed badly) fails the rigid alignment as a whole, yet most of it fits the
 building. Here the local map is cut into pieces along the robot's route (each cell belongs to
-the piece of the route nearest to it through free space: the one that saw it), and each piece is aligned on its own, starting from its
-neighbour's transform (drift grows slowly along the route) and, for the first, from the
-whole-map transform. A piece is trusted when it scores at least ``min_score`` and its transform
+the piece of the route nearest to it through free space: the one that saw it), and each piece
+is aligned on its own, starting from its neighbour's transform (drift grows slowly along the
+route) and, for the first, from the whole-map transform. A piece is trusted when it scores at least ``min_score`` and its transform
 agrees with its trusted neighbour's where they meet. Only trusted pieces are compared.
 
 Pure functions on arrays; ``[row, col]`` indexing throughout, row 0 at the top.
