@@ -112,6 +112,12 @@ def fault_of(error: BaseException, folders: Mapping[str, Path], default: str) ->
         reason = error.strerror
     else:
         reason = str(error) or type(error).__name__
+    return fault_in(folder, folders, reason)
+
+
+def fault_in(folder: str, folders: Mapping[str, Path], reason: str) -> Fault:
+    """The :class:`Fault` of configured ``folder`` (a key of ``folders``), with its free space
+    now: for a fault a worker saw, which sends back only what it was."""
     path = folders.get(folder, Path(folder))
     try:
         usage = shutil.disk_usage(path)

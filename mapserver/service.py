@@ -35,7 +35,7 @@ from watchdog.observers.polling import PollingObserver
 
 from mapserver.board import Board, resident_bytes
 from mapserver.config import Config, check_paths
-from mapserver.faults import Fault, Health, fault_of, is_transient
+from mapserver.faults import Fault, Health, fault_in, fault_of, is_transient
 from mapserver.inbox import (
     Decision,
     InboxHandler,
@@ -115,13 +115,17 @@ class _Job:
     """Its result is in the outbox (a fault stopped the move to archive/ after it)."""
     waits: bool = False
     """It has waited for a fault of the server's folders (:class:`_Waiting`)."""
+    again: Fault | None = None
+    """The fault that stopped its processing, while it is processed again (the daemon stays
+    degraded until it is done)."""
 
 
 @dataclass
 class _Waiting:
     """A bundle whose result, move to archive/ or failure could not be written because the
     server's folders or map store failed (:mod:`mapserver.faults`): it stays taken, and is
-    written when the fault goes, not processed again."""
+    written when the fault goes, not processed again. With neither ``done`` nor ``failure``,
+    the fault stopped its processing: it is processed again."""
 
     job: _Job
     fault: Fault
@@ -647,6 +651,9 @@ class Service:
         is the attempt after one."""
         bundle_id = job.bundle_id
         outcome = done.outcome
+        if outcome is None and done.server_fault:
+            self._hold(job, fault_in(done.server_fault, self._folders, done.reason))
+            return
         if outcome is None:
             self._fail(job, done.stage, done.reason, retry=retry)
             return
@@ -773,6 +780,11 @@ class Service:
             elif item.failure is not None:
                 retry = functools.partial(self._fail, retry=True)
                 _guarded(item.job.bundle_id, retry, item.job, *item.failure)
+            else:
+                log.info("%s: processed again after: %s", item.job.bundle_id, item.fault.reason)
+                item.job.again = item.fault
+                self._queue.appendleft(item.job)
+                continue
             if len(self._waiting) > before:  # it waits again, first in line: try later
                 self._waiting.rotate(1)
                 break
@@ -814,6 +826,7 @@ class Service:
 
     def _faults(self) -> list[Fault]:
         faults = [item.fault for item in self._waiting]
+        faults += [job.again for job in (*self._queue, *self._running.values()) if job.again]
         faults += self._retake.values()
         if self._store_fault is not None:
             faults.append(self._store_fault)

@@ -9,6 +9,7 @@ import logging
 import os
 import select
 import signal
+import sqlite3
 import threading
 import time
 from collections.abc import Callable
@@ -17,7 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mapserver.board import FAULT_ENV, Board, inject_fault, limit_address_space, parse_faults
-from mapserver.errors import MapserverError, OutOfMemory
+from mapserver.errors import MapserverError, OutOfMemory, StoreError
+from mapserver.faults import is_transient
 
 if TYPE_CHECKING:
     from mapserver.config import Config
@@ -30,12 +32,15 @@ ProcessFn = Callable[..., "Outcome"]
 
 @dataclass(frozen=True)
 class WorkDone:
-    """What a worker returns: an outcome, or the stage and reason it failed."""
+    """What a worker returns: an outcome, or the stage and reason it failed. ``server_fault``
+    names the server's folder (``maps``, ``inbox``) whose fault stopped it: not the bundle's
+    fault, so it is processed again when that goes, never failed."""
 
     outcome: Outcome | None
     stage: str = ""
     reason: str = ""
     seconds: float = 0.0
+    server_fault: str = ""
 
 
 def _exit_with(pid: int) -> None:
@@ -153,8 +158,17 @@ def work(
         reason = error.reason
         if isinstance(error, OutOfMemory) and _WORKER.memory_limit_mb:
             reason += f" (worker_memory_mb: {_WORKER.memory_limit_mb})"
+        if isinstance(error, StoreError):
+            # The map store, read to link the bundle to its map: busy, damaged, its disk
+            # failing. The fault names the store's folder; the reason need not.
+            problem = " ".join(error.problem.split())
+            return WorkDone(None, error.stage, problem, time.perf_counter() - start, "maps")
         return WorkDone(None, error.stage, reason, time.perf_counter() - start)
     except Exception as error:
+        if is_transient(error):  # the bundle's staging folder or the store, failing under it
+            server = "maps" if isinstance(error, sqlite3.Error) else "inbox"
+            reason = f"{type(error).__name__}: {error}"
+            return WorkDone(None, "process", reason, time.perf_counter() - start, server)
         log.exception("%s: internal error", bundle_id)
         reason = f"internal error: {type(error).__name__}: {error}"
         return WorkDone(None, "process", reason, time.perf_counter() - start)

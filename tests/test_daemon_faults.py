@@ -215,6 +215,54 @@ def test_a_locked_map_store_keeps_the_bundle_waiting_and_applies_it_once_when_re
     assert "failed at stage" not in daemon.log()
 
 
+def test_a_map_store_a_worker_cannot_read_keeps_the_bundle_and_processes_it_again_after(
+    tmp_path: Path,
+) -> None:
+    """The store's file replaced under the daemon (a restore gone wrong, a damaged disk): the
+    worker cannot link the bundle to its map. That is the server's fault, not the bundle's: it
+    waits (it went to failed/ before), the daemon says it is degraded,
+    and once the file is back the bundle is processed again and applied once."""
+    from test_fleet_daemon import applied, setup
+
+    config, sources = setup(tmp_path, 1)
+    (name,) = sources
+    db = tmp_path / "maps" / "store.db"
+    with Daemon(config) as daemon:
+        daemon.wait_ready()
+        # The daemon's own connection keeps the real file; a worker opens the name.
+        db.rename(db.with_name("store.db.moved"))
+        db.write_bytes(b"not a database, " * 512)
+        upload(sources[name], layout(tmp_path)["inbox"])
+        wait_until(
+            lambda: f"{name}: waits: maps " in daemon.log(),
+            timeout=60,
+            what="the bundle waiting for the map store",
+        )
+        assert "cannot read the map store" in daemon.log()
+        wait_until(
+            lambda: (read_status(tmp_path / "inbox") or {}).get("degraded"),
+            timeout=10,
+            what="the status file to say degraded",
+        )
+        assert taken(tmp_path) == [name]
+        assert visible(tmp_path / "failed") == [] and visible(tmp_path / "outbox") == []
+        db.unlink()
+        db.with_name("store.db.moved").rename(db)
+        wait_until(lambda: done(tmp_path, [name]), timeout=60, what="the result")
+        wait_until(
+            lambda: not (read_status(tmp_path / "inbox") or {}).get("degraded", True),
+            timeout=30,
+            what="the status file to say healthy again",
+        )
+        assert daemon.stop() == 0, daemon.log()
+    assert (
+        f"{name}: processed again after: cannot read the map store: file is not a" in daemon.log()
+    )
+    assert_settled(tmp_path, sources)
+    assert applied(tmp_path) == [name]
+    assert "failed at stage" not in daemon.log()
+
+
 def test_a_result_that_cannot_be_written_after_the_store_applied_the_bundle_counts_it_once(
     tmp_path: Path,
 ) -> None:
