@@ -53,11 +53,14 @@ class AlignConfig(_Frozen):
     piece_m: float = Field(20.0, gt=0)
     """Route length of one piece."""
     fit_check: bool = False
-    """After a trusted rigid fit, look for regions whose walls land off the building (a bend
-    beyond the drift correction: 9-15 degree kinks were trusted and reported ~30 false changes)
-    and align those in pieces or leave them out. Off by default: it costs about 8 ms on every
-    trusted bundle, and on the benchmarks it moved only the held-out drifting set (F1 0.632 ->
-    0.642); to be made cheaper (only tiles with differences) before it is on."""
+    """After every trusted rigid fit, look for regions whose walls land off the building (a
+    bend beyond the drift correction: 9-15 degree kinks were trusted and reported ~30 false
+    changes) and align those in pieces or leave them out. Off by default: it costs about 8 ms
+    per bundle, and a session without drift does not need it; drifting ones get it anyway
+    (``fit_check_drift_m``)."""
+    fit_check_drift_m: float = Field(0.2, gt=0)
+    """The fit check runs on a bundle whose drift correction reaches this, metres, even with
+    ``fit_check`` off: a bend beyond the warp leaves a large correction behind."""
 
 
 class RoiConfig(_Frozen):

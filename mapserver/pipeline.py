@@ -1114,7 +1114,10 @@ def process_bundle(
     transform = _reported_transform(local, alignment, warped)
     misfit_m = settings.diff.max_misfit_tolerance_m
     unfit = None
-    if (alignment.trusted or warped.in_pieces) and settings.align.fit_check:
+    # Every bundle with fit_check; else only a drifting one (a kink beyond the warp leaves a
+    # large drift correction too): a clean session pays nothing for it.
+    check = settings.align.fit_check or warped.drift_m >= settings.align.fit_check_drift_m
+    if (alignment.trusted or warped.in_pieces) and check:
         unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
     if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
         # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
