@@ -5,14 +5,16 @@ slam_toolbox closed badly) fails the rigid alignment as a whole, yet most of it 
 building. Here the local map is cut into pieces along the robot's route (each cell belongs to
 the piece of the route nearest to it through free space: the one that saw it), and each piece
 is aligned on its own, starting from its neighbour's transform (drift grows slowly along the
-route) and, for the first, from the whole-map transform. A piece is trusted when it scores at least ``min_score`` and its transform
-agrees with its trusted neighbour's where they meet. Only trusted pieces are compared.
+route) and, for the first, from the whole-map transform. The trusted pieces are the largest
+chain of pieces that score at least ``min_score`` and agree with each other where they meet.
+Only trusted pieces are compared.
 
 Pure functions on arrays; ``[row, col]`` indexing throughout, row 0 at the top.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Callable, Sequence
@@ -186,20 +188,23 @@ def align_pieces(
     """Align the local map in pieces along ``route_slam`` (N, 2), slam frame, metres.
 
     Pieces are aligned in route order from the end (where the robot was when it reported its
-    pose), each starting from its successor's transform, and the last from ``start`` (and from
-    ``also_from`` too when given, keeping the better fit: the whole map's alignment, for a prior
-    that is off). A piece
-    is trusted when it scores ``min_score`` or more and, where it meets a trusted neighbour,
-    the two transforms put that point within ``agree_m`` of each other (a piece that found a
-    wrong match jumps; drift does not). ``view`` must cover where the pieces land.
+    pose), each starting from the transform of the last one after it that scored ``min_score``
+    or more, and those before the first such from ``start`` (and from ``also_from`` too when
+    given, keeping the better fit: the whole map's alignment, for a prior that is off).
+
+    The trusted pieces are the largest (by area) chain of pieces that score ``min_score`` or
+    more and agree with each other: where each meets the one before it in the chain, the two
+    transforms put that point within ``agree_m`` of each other. A piece that found a wrong
+    match jumps; drift does not. Not the chain that holds the last piece: when the prior is
+    off and the last piece took a wrong match (repeated rooms), the rest of the route,
+    consistent with itself, was left out with it. ``view`` must cover where the pieces land.
     """
     runs = route_pieces(route_slam, piece_m=piece_m)
     labels = label_cells(local, runs)
     cell_m2 = local.resolution**2
     observed = float(np.count_nonzero(labels >= 0)) * cell_m2
     found: list[Piece] = []
-    prior = start
-    previous: Piece | None = None
+    prior, anchored = start, False
     for i in reversed(range(len(runs))):
         mask = labels == i
         area = float(np.count_nonzero(mask)) * cell_m2
@@ -209,7 +214,7 @@ def align_pieces(
             found.append(Piece(i, mask, prior, 0.0, False, area, junction))
             continue
         sub = _sub_map(local, mask)
-        starts = [prior] if previous is not None or also_from is None else [prior, also_from]
+        starts = [prior] if anchored or also_from is None else [prior, also_from]
         result = max(
             (
                 align_stage.align(
@@ -227,18 +232,41 @@ def align_pieces(
             key=lambda r: r.score,
         )
         t = result.nav2_from_slam
-        trusted = result.trusted
-        if trusted and previous is not None and previous.trusted:
-            # Where this piece's route ends, its successor's begins: both must put it there.
-            meet = np.array(previous.junction)
-            gap = float(np.hypot(*(t.apply(meet) - previous.nav2_from_slam.apply(meet))))
-            trusted = gap <= agree_m
-        piece = Piece(i, mask, t, result.score, trusted, area, junction)
+        piece = Piece(i, mask, t, result.score, result.trusted, area, junction)
         found.append(piece)
-        if trusted:
-            prior, previous = t, piece
+        if result.trusted:
+            prior, anchored = t, True
     found.reverse()
+    keep = largest_chain(found, agree_m)
+    found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
     return Pieces(tuple(found), observed)
+
+
+def _gap(a: Piece, b: Piece) -> float:
+    """How far apart the transforms of pieces ``a`` and ``b`` (later on the route) put the point
+    where ``b``'s route starts, metres."""
+    meet = np.array([b.junction])
+    return float(np.hypot(*(a.nav2_from_slam.apply(meet) - b.nav2_from_slam.apply(meet))[0]))
+
+
+def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
+    """The indices of the largest (by area) run of well-scoring pieces, in route order, each
+    within ``agree_m`` of the one before where they meet (pieces that do not score are skipped,
+    not breaks). A piece that found a wrong match jumps; drift does not: the pieces that agree
+    with each other over most of the route are the right ones, whichever one the prior
+    anchored."""
+    chains: list[list[Piece]] = []
+    for piece in pieces:
+        if not piece.trusted:
+            continue
+        if chains and _gap(chains[-1][-1], piece) <= agree_m:
+            chains[-1].append(piece)
+        else:
+            chains.append([piece])
+    if not chains:
+        return set()
+    best = max(chains, key=lambda c: sum(p.area_m2 for p in c))
+    return {p.index for p in best}
 
 
 def compose(
@@ -384,6 +412,7 @@ __all__ = [
     "compose",
     "fit_rigid",
     "label_cells",
+    "largest_chain",
     "route_pieces",
     "unfit_tiles",
 ]

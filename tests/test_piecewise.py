@@ -281,6 +281,29 @@ def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_pat
     assert 0.0 < a["drift_m"] <= Config().pipeline.align.deform_max_shift_m
 
 
+def _piece(index: int, dx: float, score_ok: bool = True, area: float = 100.0) -> piecewise.Piece:
+    """Piece ``index`` of a straight route east along y = 0 (20 m each), moved ``dx`` east."""
+    mask = np.zeros((2, 2), bool)
+    return piecewise.Piece(
+        index, mask, Transform2D(0.0, dx, 0.0), 0.9, score_ok, area, (20.0 * index, 0.0)
+    )
+
+
+def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior_anchors() -> None:
+    """The last piece (where the prior anchors the search) took a wrong match 1.5 m off; the
+    four before it agree with each other: they are trusted, it is not (only it was, with the
+    rest left out for disagreeing with it). A piece that does not score is skipped, not a
+    break; two chains apart, the larger wins."""
+    pieces = [_piece(i, 0.05 * i) for i in range(4)] + [_piece(4, 1.5)]
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 3}
+    pieces[2] = _piece(2, 3.0, score_ok=False)
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 3}
+    # A kink between 1 and 2: two chains; the one with more area.
+    kinked = [_piece(0, 0.0), _piece(1, 0.0), _piece(2, 2.0, area=150.0), _piece(3, 2.0, area=60)]
+    assert piecewise.largest_chain(kinked, agree_m=0.5) == {2, 3}
+    assert piecewise.largest_chain([_piece(0, 0.0, score_ok=False)], agree_m=0.5) == set()
+
+
 def test_compose_keeps_only_trusted_pieces_and_marks_the_rest_left_out() -> None:
     state = np.full((40, 60), UNKNOWN, np.uint8)
     state[10:30, 5:55] = 0  # FREE
