@@ -269,6 +269,23 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     return {p.index for p in best}
 
 
+def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> float:
+    """How far, at most, a trusted piece's transform puts its own cells from where
+    ``transform`` (one rigid fit of the whole local map) puts them, metres; 0 with no trusted
+    piece. Over the corners of each piece's bounding box: the gap between two rigid transforms
+    grows linearly across a region, so its largest is at a corner."""
+    grid = Grid.of_map(local)
+    worst = 0.0
+    for piece in pieces.trusted:
+        x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
+        if w == 0:
+            continue
+        corners = grid.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
+        gap = np.hypot(*(piece.nav2_from_slam.apply(corners) - transform.apply(corners)).T)
+        worst = max(worst, float(gap.max()))
+    return worst
+
+
 def compose(
     local: OccupancyMap,
     pieces: Pieces,
@@ -410,6 +427,7 @@ __all__ = [
     "Pieces",
     "align_pieces",
     "compose",
+    "departure",
     "fit_rigid",
     "label_cells",
     "largest_chain",

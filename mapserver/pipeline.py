@@ -460,6 +460,9 @@ def _cluster_masks(
     return cluster_stage.sort_by_area(found)
 
 
+# A trusted whole-map fit sent to pieces by the fit check: the pieces must move some of their
+# cells this far from it (metres; the pieces' own agreement tolerance) to show a bend.
+_BEND_M = 0.5
 # The drift correction (metres) from which differences are checked by a local re-fit.
 _REFIT_DRIFT_M = 0.2
 # ... and from which the transform reported is the rigid fit of the warp (beyond the noise
@@ -1127,8 +1130,17 @@ def process_bundle(
             partial(_align_in_pieces, files, local, search_view, alignment, config, bent=True),
         )
         if pieces is not None and pieces.trusted:
-            warped = stages.run("warp", partial(_warp_pieces, local, search_view, pieces, config))
-            unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
+            if piecewise.departure(local, pieces, alignment.nav2_from_slam) < _BEND_M:
+                # The pieces found no bend: what sits off the building is changes (new obstacles
+                # in a sparse hall, a column gone), compared like the rest, not left out.
+                pieces, unfit = None, None
+            else:
+                warped = stages.run(
+                    "warp", partial(_warp_pieces, local, search_view, pieces, config)
+                )
+                unfit = stages.run(
+                    "fit", partial(_unfit, warped.local_state, warped.view, misfit_m)
+                )
     aligned = _aligned(local, alignment, pieces, warped, transform, unfit)
     if aligned.in_pieces:
         # The pieces' warning stands for the whole map's alignment warnings.

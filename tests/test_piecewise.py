@@ -272,6 +272,57 @@ def test_a_kink_the_warp_takes_for_drift_is_checked_without_fit_check(
     assert straight["alignment"]["drift_m"] < 0.2 and "fit" not in straight["timings_ms"]
 
 
+def test_tiles_off_the_building_where_the_pieces_find_no_bend_are_compared(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The fit check can take changes for a bend: a tile of a sparse hall whose only walls are
+    new obstacles and a column gone looks like one off the building. Here it flags the tile of
+    the eastern box on a straight session. The pieces, aligned for real, find the same
+    transform as the whole map (no piece moves its cells 0.5 m from it): no bend, so nothing is
+    left out and the map is compared whole (the tile was left out, its box unreported)."""
+    real = piecewise.unfit_tiles
+    calls: list[int] = []
+
+    def flags_the_east_box(local_state: np.ndarray, *args: object, **kwargs: object) -> np.ndarray:
+        unfit = real(local_state, *args, **kwargs)  # type: ignore[arg-type]
+        calls.append(int(unfit.sum()))
+        unfit[:, unfit.shape[1] * 3 // 4 :] = True  # the east quarter: the box at x = 30 m
+        return unfit
+
+    monkeypatch.setattr(piecewise, "unfit_tiles", flags_the_east_box)
+    config = _with(Config(), "align", fit_check=True)
+    r = process_bundle(_bent_bundle(tmp_path / "straight", 0.0), config).result
+    assert calls[0] == 0  # the real check flags nothing on a straight session
+    a = r["alignment"]
+    assert "pieces" not in a and a["trusted"] is True and "trusted_share" not in a, a
+    assert all(len(_near(r["differences"], box)) == 1 for box in BOXES), r["differences"]
+    assert not any("left out" in w for w in r["warnings"]), r["warnings"]
+
+
+def test_departure_is_how_far_a_piece_moves_its_cells_from_the_whole_fit() -> None:
+    state = np.full((100, 200), FREE, np.uint8)  # 20 m x 10 m at 0.1 m, origin (0, 0)
+    local = from_states(state, 0.1, (0.0, 0.0, 0.0))
+    west, east = np.zeros(state.shape, bool), np.zeros(state.shape, bool)
+    west[:, :100], east[:, 100:] = True, True
+    identity = Transform2D(0.0, 0.0, 0.0)
+    turned = _turn_about((10.0, 0.0), 3.0)  # the east piece turned about its east end
+    pieces = piecewise.Pieces(
+        (
+            piecewise.Piece(0, west, identity, 0.9, True, 50.0, (0.0, 2.5)),
+            piecewise.Piece(1, east, turned, 0.9, True, 50.0, (10.0, 2.5)),
+        ),
+        100.0,
+    )
+    # Its corner farthest from the pivot (10, 0) is (20, 10), 14.1 m away, turned 3 degrees.
+    expected = 2 * math.hypot(10.0, 10.0) * math.sin(math.radians(1.5))
+    assert piecewise.departure(local, pieces, identity) == pytest.approx(expected, rel=0.02)
+    untrusted = dataclasses.replace(pieces.pieces[1], trusted=False)
+    assert (
+        piecewise.departure(local, piecewise.Pieces((pieces.pieces[0], untrusted), 100.0), identity)
+        == 0.0
+    )
+
+
 def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
     """Each trusted piece gets its own drift correction; ``alignment.drift_m`` is the largest of
     them (it said 0 for every bundle aligned in pieces)."""
