@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
-from mapserver.grid import Grid, landing_box, nonzero_cells, resample
+from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -502,8 +502,9 @@ def consistency(
         return 0.0
     local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
     structure = view.structure[landing[0] : landing[1], landing[2] : landing[3]]
-    x, y, w, h = cv2.boundingRect((local_state != UNKNOWN).view(np.uint8))
-    box = (slice(max(y - k, 0), y + h + k), slice(max(x - k, 0), x + w + k))
+    box = box_around(local_state != UNKNOWN, k)
+    if box is None:
+        return 0.0
     local_state = local_state[box]
     walls = structure[box] & (local_state != UNKNOWN)
     n = int(np.count_nonzero(walls))

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import nonzero_cells
+from mapserver.grid import box_around, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -131,14 +131,11 @@ def raw_differences(
     # Only the ROI's bounding box can differ, and only walls within the tolerances of it count
     # (the widest, with the misfit's extra): work on that box plus their reach (the same cells,
     # less area).
-    x, y, w, h = cv2.boundingRect(roi.view(np.uint8))
-    if w == 0:
-        return DiffMasks(added_full, removed_full)
     extra_m = float(extra_tolerance_m.max()) if extra_tolerance_m is not None else 0.0
     reach = offset_distances(max(tol_px, removed_tol_px) + extra_m / resolution).shape[0] // 2
-    r0, c0 = max(y - reach, 0), max(x - reach, 0)
-    r1, c1 = min(y + h + reach, roi.shape[0]), min(x + w + reach, roi.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
+    box = box_around(roi, reach)
+    if box is None:
+        return DiffMasks(added_full, removed_full)
     g_state, l_state, roi = global_state[box], local_state[box], roi[box]
     g_occ = g_state == OCCUPIED
     l_occ = l_state == OCCUPIED
@@ -341,13 +338,10 @@ def misfit_tolerance(
     """
     tol = np.zeros(local_state.shape, np.float32)
     local_walls = local_state == OCCUPIED
-    x, y, w, h = cv2.boundingRect(local_walls.view(np.uint8))
-    if w == 0 or not global_walls.any():
-        return tol
     # Distances on the box around the local walls, with room for the reach.
-    k = math.ceil(max_m / resolution) + 1
-    r0, c0 = max(y - k, 0), max(x - k, 0)
-    box = (slice(r0, y + h + k), slice(c0, x + w + k))
+    box = box_around(local_walls, math.ceil(max_m / resolution) + 1)
+    if box is None or not global_walls.any():
+        return tol
     dist_m = distance_to(global_walls[box]) * resolution
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
@@ -356,7 +350,7 @@ def misfit_tolerance(
     if len(rows) < min_walls:
         return tol
     dist_m_at = dist_m[rows, cols]
-    rows, cols = rows + r0, cols + c0
+    rows, cols = rows + box[0].start, cols + box[1].start
     tile = max(1, round(tile_m / resolution))
     # Tiles on the lattice given by tile_offset_px, and a ring of empty ones around the walls'
     # (they borrow from their neighbours).
@@ -448,15 +442,11 @@ def removal_evidence(
     Returns a new (H, W) bool array, True only on cells of ``removed``.
     """
     evidence = np.zeros(removed.shape, bool)
-    x, y, w, h = cv2.boundingRect(removed.view(np.uint8))
-    if w == 0:
-        return evidence
     reach = max(1, round(see_through_m / resolution))
     across = round(both_sides_m / resolution)
-    m = max(reach, across, math.ceil(depth_m / resolution) + 2)
-    r0, c0 = max(y - m, 0), max(x - m, 0)
-    r1, c1 = min(y + h + m, removed.shape[0]), min(x + w + m, removed.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
+    box = box_around(removed, max(reach, across, math.ceil(depth_m / resolution) + 2))
+    if box is None:
+        return evidence
     g_occ = global_state[box] == OCCUPIED
     cand = removed[box]
     depth = cv2.distanceTransform(g_occ.astype(np.uint8), cv2.DIST_L2, 5) * resolution

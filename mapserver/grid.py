@@ -171,6 +171,20 @@ def landing_box(
     return int(r0), int(r1), int(c0), int(c1)
 
 
+def box_around(mask: NDArray[np.bool_], margin_px: int) -> tuple[slice, slice] | None:
+    """The bounding box of ``mask``'s True cells grown by ``margin_px`` on every side, clipped
+    to the array: ``(rows, cols)`` slices, None when no cell is True. The window a stage works
+    in instead of the whole grid."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    if w == 0:
+        return None
+    rows, cols = mask.shape[:2]
+    return (
+        slice(max(y - margin_px, 0), min(y + h + margin_px, rows)),
+        slice(max(x - margin_px, 0), min(x + w + margin_px, cols)),
+    )
+
+
 def nonzero_cells(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """``np.nonzero(mask)``: the rows and columns of the True cells in row-major order, found
     with ``cv2.findNonZero`` in their bounding box (several times faster on a sparse mask)."""

@@ -20,7 +20,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
-import cv2
 import numpy as np
 
 from mapserver import align as align_stage
@@ -51,7 +50,7 @@ from mapserver.fleet import observe, store
 from mapserver.fleet.model import MapLink
 from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D, fit_rigid
-from mapserver.grid import Grid, landing_box, resample
+from mapserver.grid import Grid, box_around, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import OCCUPIED, UNKNOWN, OccupancyMap, load_map
 from mapserver.trust import trust_notice
@@ -718,19 +717,15 @@ def _warp_pieces(
     shifts: list[float] = []
     warp_piece = partial(_warp_piece, search_view, config, shifts)
     state, out = piecewise.compose(local, pieces, grid, warp=warp_piece)
-    x, y, w, h = cv2.boundingRect(((state != UNKNOWN) | out).view(np.uint8))
     m = math.ceil(_view_margin_m(config) / grid.resolution)
-    box = (
-        max(y - m, 0),
-        min(y + h + m, grid.height),
-        max(x - m, 0),
-        min(x + w + m, grid.width),
-    )
-    r0, r1, c0, c1 = box
+    # Nothing composed at all: a corner of the view, as a box around no cell would be.
+    corner = (slice(0, min(m, grid.height)), slice(0, min(m, grid.width)))
+    window = box_around((state != UNKNOWN) | out, m) or corner
+    rows, cols = window
     return _Warped(
-        search_view.cropped(box),
-        state[r0:r1, c0:c1],
-        out[r0:r1, c0:c1],
+        search_view.cropped((rows.start, rows.stop, cols.start, cols.stop)),
+        state[window],
+        out[window],
         in_pieces=True,
         drift_m=max(shifts, default=0.0),
     )
@@ -1146,7 +1141,7 @@ def process_bundle(
         # The pieces' warning stands for the whole map's alignment warnings.
         warnings = [w for w in warnings if w not in alignment.warnings]
     warnings += aligned.warnings
-    if aligned.drift_m > 0.1:
+    if aligned.drift_m >= _REPORT_WARP_M:  # as large as the report names the warp
         log.info("%s: drift corrected, up to %.2f m", bundle_id, aligned.drift_m)
     grid, local_state = aligned.view.grid, aligned.local_state
     route_xy = _route_nav2(files, aligned.transform)  # the trajectory ROI and the overlay draw it

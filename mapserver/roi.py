@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.geometry import Pose2D
-from mapserver.grid import Grid
+from mapserver.grid import Grid, box_around
 from mapserver.maps import UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -62,16 +62,15 @@ def observed(local_state: NDArray[np.uint8], grid: Grid) -> Roi:
     known = local_state != UNKNOWN
     # The closing and the contour on the box around the known cells (plus more than the
     # closing's reach): the same outline as over the whole grid.
-    x, y, w, h = cv2.boundingRect(known.view(np.uint8))
-    if w == 0:
+    box = box_around(known, 8)
+    if box is None:
         return Roi("observed", known, [])
-    m = 8
-    c0, r0 = max(x - m, 0), max(y - m, 0)
-    part = known[r0 : y + h + m, c0 : x + w + m].view(np.uint8)
+    part = known[box].view(np.uint8)
     closed = np.asarray(
         cv2.morphologyEx(part, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)), np.uint8
     )
-    return Roi("observed", known, _outline(closed, grid, simplify_m=0.25, offset=(c0, r0)))
+    offset = (box[1].start, box[0].start)
+    return Roi("observed", known, _outline(closed, grid, simplify_m=0.25, offset=offset))
 
 
 def box(robot: Pose2D, grid: Grid, *, size_m: float) -> Roi:

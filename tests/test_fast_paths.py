@@ -29,7 +29,7 @@ from mapserver.diff import (
     raw_differences,
 )
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid, landing_box, nonzero_cells, resample
+from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.roi import _outline
 
@@ -605,3 +605,12 @@ def test_nonzero_cells_are_numpys(density: float) -> None:
         expected_rows, expected_cols = np.nonzero(m)
         assert np.array_equal(rows, expected_rows) and np.array_equal(cols, expected_cols)
         assert rows.dtype == np.intp and cols.dtype == np.intp
+
+
+def test_box_around_is_the_bounding_box_grown_and_clipped() -> None:
+    mask = np.zeros((20, 30), bool)
+    assert box_around(mask, 3) is None
+    mask[5:8, 10:12] = True
+    assert box_around(mask, 2) == (slice(3, 10), slice(8, 14))
+    mask[0, 29] = True  # at the corner: the growth is clipped to the array
+    assert box_around(mask, 4) == (slice(0, 12), slice(6, 30))
