@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from mapserver import align as align_stage
 from mapserver.geometry import Transform2D
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid, resample
+from mapserver.grid import Grid, box_around, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -309,22 +309,27 @@ def compose(
     for piece in pieces.pieces:
         if not piece.mask.any():
             continue
-        part = np.where(piece.mask, local.state, UNKNOWN).astype(np.uint8)
         if piece.trusted and warp is not None:
             warped = warp(_sub_map(local, piece.mask), piece.nav2_from_slam)
         else:
+            part = np.where(piece.mask, local.state, UNKNOWN).astype(np.uint8)
             warped = resample(part, source, grid, piece.nav2_from_slam)
-        known = warped != UNKNOWN
+        # Only the box the piece lands in: a long route's pieces each cover a small part.
+        window = box_around(warped != UNKNOWN, 0)
+        if window is None:
+            continue
+        now, landed = state[window], warped[window]
+        known = landed != UNKNOWN
         if piece.trusted:
             # Two pieces that saw one cell differently (a wall bent one way in one, another in
             # the other) give no evidence there: unknown, never a difference.
-            conflict = known & (state != UNKNOWN) & (state != warped)
-            take = known & (state == UNKNOWN)
-            state[take] = warped[take]
-            state[conflict] = UNKNOWN
-            disputed |= conflict
+            conflict = known & (now != UNKNOWN) & (now != landed)
+            take = known & (now == UNKNOWN)
+            now[take] = landed[take]
+            now[conflict] = UNKNOWN
+            disputed[window] |= conflict
         else:
-            left_out |= known
+            left_out[window] |= known
     state[disputed] = UNKNOWN
     left_out &= state == UNKNOWN
     return state, left_out
