@@ -165,7 +165,8 @@ def _densify(run: FloatArray, step_m: float) -> FloatArray:
 def _sub_map(local: OccupancyMap, mask: NDArray[np.bool_]) -> OccupancyMap:
     """The local map with only ``mask``'s cells known, cropped to their bounding box."""
     x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
-    state = np.where(mask, local.state, UNKNOWN)[y : y + h, x : x + w]
+    box = (slice(y, y + h), slice(x, x + w))
+    state = np.where(mask[box], local.state[box], UNKNOWN)
     grid = Grid.of_map(local).crop((y, y + h, x, x + w))
     occ = np.where(state == OCCUPIED, 100, np.where(state == UNKNOWN, 205, 0)).astype(np.uint8)
     return OccupancyMap(state, occ, local.resolution, (grid.x0, grid.y0, 0.0))
