@@ -59,8 +59,9 @@ class AlignConfig(_Frozen):
     per bundle, and a session without drift does not need it; drifting ones get it anyway
     (``fit_check_drift_m``)."""
     fit_check_drift_m: float = Field(0.2, gt=0)
-    """The fit check runs on a bundle whose drift correction reaches this, metres, even with
-    ``fit_check`` off: a bend beyond the warp leaves a large correction behind."""
+    """A bundle whose drift correction reaches this, metres, gets the fit check even with
+    ``fit_check`` off, and is aligned in pieces too (with ``pieces``), the pieces kept only
+    when they find a bend: one beyond the warp leaves a large correction behind."""
 
 
 class RoiConfig(_Frozen):

@@ -1117,25 +1117,30 @@ def process_bundle(
     check = settings.align.fit_check or warped.drift_m >= settings.align.fit_check_drift_m
     if (alignment.trusted or warped.in_pieces) and check:
         unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
-    if alignment.trusted and unfit is not None and unfit.any() and settings.align.pieces:
-        # Trusted as a whole, yet a region lands off the building: a bend beyond the drift
-        # correction. Aligned in pieces, each region fits on its own or is left out.
+    off_building = unfit is not None and bool(unfit.any())
+    drifting = warped.drift_m >= settings.align.fit_check_drift_m
+    if alignment.trusted and settings.align.pieces and (off_building or drifting):
+        # Trusted as a whole, yet a region lands off the building, or the warp had to bend the
+        # map by decimetres: maybe a bend beyond the drift correction (a 5-6 degree kink leaves
+        # no tile off the building, the warp takes most of it, and still walls land doubled).
+        # Aligned in pieces, each region fits on its own or is left out, if they find a bend.
         pieces = stages.run(
             "pieces",
             partial(_align_in_pieces, files, local, search_view, alignment, config, bent=True),
         )
-        if pieces is not None and pieces.trusted:
-            if piecewise.departure(local, pieces, alignment.nav2_from_slam) < _BEND_M:
-                # The pieces found no bend: what sits off the building is changes (new obstacles
-                # in a sparse hall, a column gone), compared like the rest, not left out.
-                pieces, unfit = None, None
-            else:
-                warped = stages.run(
-                    "warp", partial(_warp_pieces, local, search_view, pieces, config)
-                )
-                unfit = stages.run(
-                    "fit", partial(_unfit, warped.local_state, warped.view, misfit_m)
-                )
+        bent = (
+            pieces is not None
+            and bool(pieces.trusted)
+            and piecewise.departure(local, pieces, alignment.nav2_from_slam) >= _BEND_M
+        )
+        if bent:
+            assert pieces is not None
+            warped = stages.run("warp", partial(_warp_pieces, local, search_view, pieces, config))
+            unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
+        elif pieces is not None and (pieces.trusted or not off_building):
+            # The pieces found no bend: what sits off the building is changes (new obstacles in
+            # a sparse hall, a column gone), compared like the rest; the whole map's fit stands.
+            pieces, unfit = None, None
     aligned = _aligned(local, alignment, pieces, warped, transform, unfit)
     if aligned.in_pieces:
         # The pieces' warning stands for the whole map's alignment warnings.

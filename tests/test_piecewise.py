@@ -248,20 +248,20 @@ def test_a_moderate_kink_is_not_trusted_whole(tmp_path: Path, bend_deg: float) -
         ), (x0, r["differences"])
 
 
-@pytest.mark.parametrize("bend_deg", [7.0, 9.0])
+@pytest.mark.parametrize("bend_deg", [5.0, 7.0, 9.0])
 def test_a_kink_the_warp_takes_for_drift_is_checked_without_fit_check(
     tmp_path: Path, bend_deg: float
 ) -> None:
-    """A 7-9 degree kink is trusted whole, the drift warp bending the far side by up to 0.8 m
+    """A 5-9 degree kink is trusted whole, the drift warp bending the far side by up to 0.8 m
     (the largest shift it allows): with the fit check only on request (the default before),
-    about 20 false changes were reported. A drift correction that large now runs the check
-    itself, which sends the map to pieces: the two planted boxes and nothing else. A session
-    that did not drift does not pay for it."""
+    4 to 20 false changes were reported. A drift correction that large now runs the check
+    and aligns the map in pieces too, which find the bend: the two planted boxes and nothing
+    else. A session that did not drift does not pay for it."""
     bundle = _bent_bundle(tmp_path / "bent", bend_deg)
     unchecked = _with(Config(), "align", fit_check_drift_m=100.0)
     r = process_bundle(bundle, unchecked).result
     assert "pieces" not in r["alignment"] and r["alignment"]["drift_m"] >= 0.5
-    assert len(r["differences"]) > 10
+    assert len(r["differences"]) > 4
 
     r = process_bundle(bundle, Config()).result
     assert "fit" in r["timings_ms"] and r["alignment"]["pieces"] == 2
