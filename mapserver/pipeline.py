@@ -797,10 +797,12 @@ def _aligned(
     warnings: list[str] = []
     if pieces is not None and warped.in_pieces:
         transform = piecewise.fit_rigid(local, pieces) or transform
+        left = len(pieces.pieces) - len(pieces.trusted)
         warnings.append(
-            f"the local map was aligned in {len(pieces.pieces)} pieces along the route, "
-            f"{len(pieces.trusted)} trusted: {pieces.trusted_share:.0%} of the observed area "
-            f"({pieces.trusted_area_m2:.0f} m2) compared, the rest left out"
+            f"the local map was aligned in {len(pieces.pieces)} pieces along the route (a bend "
+            f"beyond the drift correction), {len(pieces.trusted)} trusted: "
+            f"{pieces.trusted_share:.0%} of the observed area ({pieces.trusted_area_m2:.0f} m2) "
+            + ("compared, the rest left out" if left else "compared")
         )
     local_state, left_out = warped.local_state, warped.left_out
     compared = alignment.trusted or warped.in_pieces

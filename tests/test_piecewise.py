@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -265,6 +266,9 @@ def test_a_kink_the_warp_takes_for_drift_is_checked_without_fit_check(
 
     r = process_bundle(bundle, Config()).result
     assert "fit" in r["timings_ms"] and r["alignment"]["pieces"] == 2
+    assert r["alignment"]["trusted_pieces"] == 2 and trust_notice(r["alignment"]) is None
+    (said,) = [w for w in r["warnings"] if "pieces along the route" in w]
+    assert re.search(r"2 trusted: 100% of the observed area \(\d+ m2\) compared$", said), said
     assert len(r["differences"]) <= 4, r["differences"]
     assert all(len(_near(r["differences"], box)) == 1 for box in BOXES)
 
