@@ -799,8 +799,8 @@ def _aligned(
         transform = piecewise.fit_rigid(local, pieces) or transform
         left = len(pieces.pieces) - len(pieces.trusted)
         warnings.append(
-            f"the local map was aligned in {len(pieces.pieces)} pieces along the route (a bend "
-            f"beyond the drift correction), {len(pieces.trusted)} trusted: "
+            f"the local map was aligned in {len(pieces.pieces)} pieces along the route (no one "
+            f"transform fits all of it), {len(pieces.trusted)} trusted: "
             f"{pieces.trusted_share:.0%} of the observed area ({pieces.trusted_area_m2:.0f} m2) "
             + ("compared, the rest left out" if left else "compared")
         )
