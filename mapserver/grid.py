@@ -178,10 +178,25 @@ def box_around(mask: NDArray[np.bool_], margin_px: int) -> tuple[slice, slice] |
     x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
     if w == 0:
         return None
-    rows, cols = mask.shape[:2]
+    return _grown((y, y + h, x, x + w), margin_px, mask.shape)
+
+
+def box_of_cells(
+    rows: NDArray[np.intp], cols: NDArray[np.intp], margin_px: int, shape: tuple[int, ...]
+) -> tuple[slice, slice]:
+    """:func:`box_around` for cells given by their (non-empty) ``rows`` and ``cols`` on an
+    array of ``shape``: no pass over the whole array."""
+    box = (int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1)
+    return _grown(box, margin_px, shape)
+
+
+def _grown(
+    box: tuple[int, int, int, int], margin_px: int, shape: tuple[int, ...]
+) -> tuple[slice, slice]:
+    r0, r1, c0, c1 = box
     return (
-        slice(max(y - margin_px, 0), min(y + h + margin_px, rows)),
-        slice(max(x - margin_px, 0), min(x + w + margin_px, cols)),
+        slice(max(r0 - margin_px, 0), min(r1 + margin_px, shape[0])),
+        slice(max(c0 - margin_px, 0), min(c1 + margin_px, shape[1])),
     )
 
 

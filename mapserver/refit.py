@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
-from mapserver.grid import nonzero_cells
+from mapserver.grid import box_of_cells, nonzero_cells
 
 BoolArray = NDArray[np.bool_]
 
@@ -54,9 +54,10 @@ def explained_by_refit(
     cells then within ``tolerance_m`` of a global wall, of a removed one's within
     ``removed_tolerance_m`` of a moved local wall."""
     rows, cols = cells[:, 0], cells[:, 1]
-    r0, r1, c0, c1 = _window(rows, cols, margin_m + shift_m, resolution, global_walls.shape)
-    g = global_walls[r0:r1, c0:c1]
-    lw = local_walls[r0:r1, c0:c1]
+    box = _window(rows, cols, margin_m + shift_m, resolution, global_walls.shape)
+    r0, c0 = box[0].start, box[1].start
+    g = global_walls[box]
+    lw = local_walls[box]
     if not g.any():
         return False
     rr, cc = rows - r0, cols - c0
@@ -144,21 +145,22 @@ def ghost_of_wall(
     stretch of wall seen twice.
     """
     rows, cols = cells[:, 0], cells[:, 1]
-    r0, r1, c0, c1 = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
+    box = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
+    r0, c0 = box[0].start, box[1].start
     tol_px = tolerance_m / resolution
     # Within the tolerance of a mask: a dilation by these offsets (diff.near), not a distance
     # transform.
     within = ~(offset_distances(tol_px) > tol_px)
     # Global walls the local map shows in place too: the first copy of the wall.
-    g = global_walls[r0:r1, c0:c1]
-    target = g & near(local_walls[r0:r1, c0:c1], within)
+    g = global_walls[box]
+    target = g & near(local_walls[box], within)
     if not target.any():
         return False
     mark = np.zeros(g.shape, np.uint8)
     mark[rows - r0, cols - c0] = 1
     k = math.ceil(reach_m / resolution)
     around = cv2.dilate(mark, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2))
-    pr, pc = nonzero_cells(added[r0:r1, c0:c1] & (around > 0))
+    pr, pc = nonzero_cells(added[box] & (around > 0))
     if len(pr) < 3:
         return False
     # Long enough to be a stretch of wall: its extent along its main axis.
@@ -208,14 +210,9 @@ def _window(
     reach_m: float,
     resolution: float,
     shape: tuple[int, ...],
-) -> tuple[int, int, int, int]:
-    """(r0, r1, c0, c1): the cells' bounding box grown by ``reach_m`` (and two cells), within
-    ``shape``."""
-    reach = math.ceil(reach_m / resolution) + 2
-    h, w = shape[0], shape[1]
-    r0, c0 = max(int(rows.min()) - reach, 0), max(int(cols.min()) - reach, 0)
-    r1, c1 = min(int(rows.max()) + reach + 1, h), min(int(cols.max()) + reach + 1, w)
-    return r0, r1, c0, c1
+) -> tuple[slice, slice]:
+    """The cells' bounding box grown by ``reach_m`` (and two cells), within ``shape``."""
+    return box_of_cells(rows, cols, math.ceil(reach_m / resolution) + 2, shape)
 
 
 def _turned(

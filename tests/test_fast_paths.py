@@ -29,7 +29,7 @@ from mapserver.diff import (
     raw_differences,
 )
 from mapserver.geometry import Transform2D
-from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
+from mapserver.grid import Grid, box_around, box_of_cells, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.roi import _outline
 
@@ -614,3 +614,13 @@ def test_box_around_is_the_bounding_box_grown_and_clipped() -> None:
     assert box_around(mask, 2) == (slice(3, 10), slice(8, 14))
     mask[0, 29] = True  # at the corner: the growth is clipped to the array
     assert box_around(mask, 4) == (slice(0, 12), slice(6, 30))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_box_of_cells_is_box_around_their_mask(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    mask = rng.random((40, 60)) > 0.995
+    mask[rng.integers(40), rng.integers(60)] = True
+    rows, cols = np.nonzero(mask)
+    for margin in (0, 3, 50):
+        assert box_of_cells(rows, cols, margin, mask.shape) == box_around(mask, margin)
