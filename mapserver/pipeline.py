@@ -1130,13 +1130,11 @@ def process_bundle(
             "pieces",
             partial(_align_in_pieces, files, local, search_view, alignment, config, bent=True),
         )
-        bent = (
+        if (
             pieces is not None
-            and bool(pieces.trusted)
+            and pieces.trusted
             and piecewise.departure(local, pieces, alignment.nav2_from_slam) >= _BEND_M
-        )
-        if bent:
-            assert pieces is not None
+        ):
             warped = stages.run("warp", partial(_warp_pieces, local, search_view, pieces, config))
             unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
         elif pieces is not None and (pieces.trusted or not off_building):
