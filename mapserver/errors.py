@@ -45,6 +45,11 @@ class MapserverError(Exception):
         super().__init__(self.reason)
 
     @property
+    def problem_line(self) -> str:
+        """The problem on one line, without the file: for a message that names the place."""
+        return " ".join(self.problem.split())
+
+    @property
     def reason(self) -> str:
         """One line: ``<file>: <problem>``, or just the problem when no file is known."""
         text = self.problem if self.file is None else f"{self.file}: {self.problem}"

@@ -154,15 +154,15 @@ def work(
     _WORKER.bundle_id = bundle_id
     try:
         outcome = process(Path(bundle_dir), config, bundle_id=bundle_id)
+    except StoreError as error:
+        # The map store, read to link the bundle to its map: busy, damaged, its disk failing.
+        # The fault names the store's folder; the reason need not.
+        seconds = time.perf_counter() - start
+        return WorkDone(None, error.stage, error.problem_line, seconds, "maps")
     except MapserverError as error:
         reason = error.reason
         if isinstance(error, OutOfMemory) and _WORKER.memory_limit_mb:
             reason += f" (worker_memory_mb: {_WORKER.memory_limit_mb})"
-        if isinstance(error, StoreError):
-            # The map store, read to link the bundle to its map: busy, damaged, its disk
-            # failing. The fault names the store's folder; the reason need not.
-            problem = " ".join(error.problem.split())
-            return WorkDone(None, error.stage, problem, time.perf_counter() - start, "maps")
         return WorkDone(None, error.stage, reason, time.perf_counter() - start)
     except Exception as error:
         if is_transient(error):  # the bundle's staging folder or the store, failing under it
