@@ -243,11 +243,15 @@ def align_pieces(
     return Pieces(tuple(found), observed)
 
 
+def _apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
+    """How far apart ``a`` and ``b`` put each of ``points`` (N, 2), metres."""
+    return np.asarray(np.hypot(*(a.apply(points) - b.apply(points)).T))
+
+
 def _gap(a: Piece, b: Piece) -> float:
     """How far apart the transforms of pieces ``a`` and ``b`` (later on the route) put the point
     where ``b``'s route starts, metres."""
-    meet = np.array([b.junction])
-    return float(np.hypot(*(a.nav2_from_slam.apply(meet) - b.nav2_from_slam.apply(meet))[0]))
+    return float(_apart(a.nav2_from_slam, b.nav2_from_slam, np.array([b.junction]))[0])
 
 
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
@@ -282,8 +286,7 @@ def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> fl
         if w == 0:
             continue
         corners = grid.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
-        gap = np.hypot(*(piece.nav2_from_slam.apply(corners) - transform.apply(corners)).T)
-        worst = max(worst, float(gap.max()))
+        worst = max(worst, float(_apart(piece.nav2_from_slam, transform, corners).max()))
     return worst
 
 
