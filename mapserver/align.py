@@ -668,6 +668,10 @@ class NearestWall:
         self._table = table
         self._origin = origin
         self.shape = (*(shape or labels.shape), 2)
+        # The labels with a ring of label 0 around them (built on the first lookup): a lookup
+        # clips its cells onto the ring instead of testing which lie off the box.
+        self._ring: NDArray[np.int32] | None = None
+        self._xy: dict[Grid, tuple[FloatArray, FloatArray]] = {}
 
     @staticmethod
     def of(
@@ -692,44 +696,44 @@ class NearestWall:
             origin=(r0, c0),
         )
 
+    def _label_at(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.intp]:
+        """The nearest wall's row of the table for each cell; 0 (no wall) off the box."""
+        if self._ring is None:
+            self._ring = np.pad(self._labels, 1)
+        h, w = self._ring.shape
+        # Flat lookups (take) of cells clipped onto the ring: ICP and the drift estimate call
+        # this every iteration, so in place where it can be.
+        r = rows - (self._origin[0] - 1)
+        c = cols - (self._origin[1] - 1)
+        np.clip(r, 0, h - 1, out=r)
+        np.clip(c, 0, w - 1, out=c)
+        r *= w
+        r += c
+        return np.asarray(self._ring.ravel().take(r))
+
     def __getitem__(self, index: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
-        rows, cols = index
-        r0, c0 = self._origin
-        h, w = self._labels.shape
-        r, c = rows - r0, cols - c0
-        # Clipped flat lookups (take), then the cells outside the box set apart: about twice
-        # as fast as masking first, and ICP and the drift estimate call this every iteration.
-        rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
-        out = self._table.take(self._labels.ravel().take(rc * w + cc), axis=0)
-        outside = (rc != r) | (cc != c)
-        if outside.any():
-            out[outside] = 1e9
-        return np.asarray(out)
+        return np.asarray(self._table.take(self._label_at(*index), axis=0))
 
     def covers(self, box: tuple[int, int, int, int]) -> bool:
         r0, c0 = self._origin
         h, w = self._labels.shape
         return box[0] >= r0 and box[1] >= c0 and box[2] <= r0 + h and box[3] <= c0 + w
 
-    def in_metres(self, grid: Grid) -> NearestWall:
-        """The same field giving the nearest wall cell's centre (x, y) on ``grid`` instead of
-        its (col, row): ``grid.to_world`` done once per wall cell (and kept), not per lookup."""
-        cache: dict[Grid, NearestWall] = self.__dict__.setdefault("_in_metres", {})
-        if grid not in cache:
+    def nearest_xy(self, x: FloatArray, y: FloatArray, grid: Grid) -> tuple[FloatArray, FloatArray]:
+        """The x and the y (metres, (N,) each) of the wall cell nearest the cells that hold
+        points ``(x, y)`` (metres on ``grid``, the field's grid); 1e9 for points off the field,
+        as far as no wall. ``grid.to_world`` is done once per wall cell (and kept), not per
+        lookup."""
+        if grid not in self._xy:
             table = grid.to_world(self._table)
             table[0] = 1e9  # no wall in the box: infinitely far, in metres too
-            cache[grid] = NearestWall(
-                self._labels, table, shape=self.shape[:2], origin=self._origin
-            )
-        return cache[grid]
-
-    def nearest_m(self, x: FloatArray, y: FloatArray, grid: Grid) -> FloatArray:
-        """(N, 2) metres of the wall cell nearest the cells that hold points ``(x, y)`` (metres
-        on ``grid``, the field's grid); 1e9 for points off the field, as far as no wall."""
+            self._xy[grid] = (np.ascontiguousarray(table[:, 0]), np.ascontiguousarray(table[:, 1]))
+        tx, ty = self._xy[grid]
         res = grid.resolution
         col = np.rint((x - grid.x0) / res - 0.5).astype(np.int64)
         row = np.rint(grid.height - (y - grid.y0) / res - 0.5).astype(np.int64)
-        return self.in_metres(grid)[row, col]
+        label = self._label_at(row, col)
+        return np.asarray(tx.take(label)), np.asarray(ty.take(label))
 
 
 def icp(
@@ -755,14 +759,14 @@ def icp(
         c, s = math.cos(transform.theta), math.sin(transform.theta)
         qx = c * sx - s * sy + transform.tx
         qy = s * sx + c * sy + transform.ty
-        target = nearest.nearest_m(qx, qy, grid)  # points off the field: never within limit
-        ex, ey = target[:, 0] - qx, target[:, 1] - qy
+        wx, wy = nearest.nearest_xy(qx, qy, grid)  # points off the field: never within limit
+        ex, ey = wx - qx, wy - qy
         use = ex * ex + ey * ey <= limit * limit
         n = int(np.count_nonzero(use))
         if n < 10:
             break
         ux, uy = sx[use], sy[use]
-        vx, vy = target[use, 0], target[use, 1]
+        vx, vy = wx[use], wy[use]
         msx, msy, mdx, mdy = ux.mean(), uy.mean(), vx.mean(), vy.mean()
         ux, uy, vx, vy = ux - msx, uy - msy, vx - mdx, vy - mdy
         # The closed-form rigid fit: the rotation from the cross-covariance of the pairs.

@@ -158,8 +158,8 @@ def estimate_drift(
         limit = max_shift_m * (1.0 - 0.5 * k / max(iterations - 1, 1))
         qx = bx[point] + shift_x[node]
         qy = by[point] + shift_y[node]
-        target = nearest.nearest_m(qx, qy, grid)  # points off the field: never within limit
-        rx, ry = target[:, 0] - qx, target[:, 1] - qy
+        wx, wy = nearest.nearest_xy(qx, qy, grid)  # points off the field: never within limit
+        rx, ry = wx - qx, wy - qy
         use = rx * rx + ry * ry <= limit * limit
         node_used = node[use]
         counted = np.bincount(node_used, minlength=n_nodes)

@@ -385,6 +385,15 @@ def test_nearest_wall_on_a_box_is_the_full_field_inside_it(seed: int) -> None:
     sure = inside & (d_wall < d_edge)
     assert np.array_equal(got[sure], want[sure])
     assert (got[~inside] >= 1e9).all()
+    # In metres (what ICP and the drift estimate read), points given by cell centres: the
+    # same walls' centres, and as far as no wall off the box (two cells off it too).
+    grid = grid_module.Grid(1.0, -2.0, 0.05, 150, 120)
+    centres = grid.to_world(np.stack([cols, rows], 1).astype(float))
+    x, y = boxed.nearest_xy(centres[:, 0], centres[:, 1], grid)
+    assert np.allclose(np.stack([x, y], 1)[inside], grid.to_world(got[inside]))
+    assert (x[~inside] >= 1e9).all() and (y[~inside] >= 1e9).all()
+    far_x, _ = boxed.nearest_xy(np.array([0.0, 1.0 + 7.6]), np.array([-2.0, 4.1]), grid)
+    assert (far_x >= 1e9).all()
 
 
 @pytest.mark.parametrize("seed", range(4))
