@@ -11,6 +11,9 @@ then lies on a global wall (added) or under a local one (removed).
 (not the difference itself) to the global walls by a small rigid move, then checks the
 difference under that move. A new obstacle in open space stays away from every global wall
 whatever small move the surrounding walls allow; a removed wall stays free.
+
+:func:`floor_seen_share` checks the other trace a fold leaves: free cells inside a structure
+whose floor around it the robot never saw.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
 from mapserver.grid import box_of_cells, nonzero_cells
+from mapserver.maps import FREE
 
 BoolArray = NDArray[np.bool_]
 
@@ -204,6 +208,35 @@ def ghost_of_wall(
     return False
 
 
+def floor_seen_share(
+    cells: NDArray[np.intp],
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    reach_m: float = 0.1,
+) -> float:
+    """The share of the open floor around a removed difference that the local map sees free:
+    the cells within ``reach_m`` of its ``cells`` ((N, 2) row, col) that the global map has
+    free, on the grid of the two (H, W) state arrays. 1.0 when no floor lies that near.
+
+    The robot that looked through where a structure stood saw the floor beside it too (rays
+    that crossed the structure's cells went on). Cells seen free inside a structure whose
+    floor all round was never seen come from a part of the local map laid over the wrong place
+    after drift (a revisit that saw open space there, its drift different), not from rays.
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    k = max(1, round(reach_m / resolution))
+    box = box_of_cells(rows, cols, k, global_state.shape)
+    mark = np.zeros(global_state[box].shape, np.uint8)
+    mark[rows - box[0].start, cols - box[1].start] = 1
+    ring = (cv2.dilate(mark, np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0) & (mark == 0)
+    floor = ring & (global_state[box] == FREE)
+    if not floor.any():
+        return 1.0
+    return float(np.count_nonzero(local_state[box][floor] == FREE)) / np.count_nonzero(floor)
+
+
 def _window(
     rows: NDArray[np.intp],
     cols: NDArray[np.intp],
@@ -225,4 +258,4 @@ def _turned(
     return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
-__all__ = ["explained_by_refit", "ghost_of_wall"]
+__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall"]

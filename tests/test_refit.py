@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from mapserver.grid import nonzero_cells
-from mapserver.refit import explained_by_refit, ghost_of_wall
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN
+from mapserver.refit import explained_by_refit, floor_seen_share, ghost_of_wall
 
 RES = 0.05
 KW = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
@@ -151,3 +152,41 @@ def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
     kw = {"resolution": RES, "tolerance_m": 0.15}
     assert not ghost_of_wall(cells(box), added, glob, local, **kw)
     assert ghost_of_wall(cells(ghost & (np.arange(160) < 80)), added, glob, local, **kw)
+
+
+def _column_hall() -> tuple[np.ndarray, np.ndarray]:
+    """A 6 m hall (global states) with a 0.5 m column in it; and the column's cells."""
+    glob = np.full((120, 120), FREE, np.uint8)
+    column = np.zeros(glob.shape, bool)
+    column[50:60, 50:60] = True
+    glob[column] = OCCUPIED
+    return glob, column
+
+
+def test_a_column_gone_has_its_floor_seen_all_round() -> None:
+    glob, column = _column_hall()
+    local = np.full(glob.shape, FREE, np.uint8)  # the robot drove round where it stood
+    assert floor_seen_share(cells(column), glob, local, resolution=RES) == 1.0
+
+
+def test_free_cells_inside_a_column_whose_floor_went_unseen_were_laid_there_by_a_fold() -> None:
+    glob, column = _column_hall()
+    # A revisit's part of the map, its drift different, laid open space over the column; the
+    # column's faces and the floor 0.15 m around them were never seen (grey in the slam map).
+    local = np.full(glob.shape, FREE, np.uint8)
+    local[47:63, 47:63] = UNKNOWN
+    local[column] = FREE
+    assert floor_seen_share(cells(column), glob, local, resolution=RES) == 0.0
+    # Half of the floor around seen: half the share.
+    local[47:63, 55:63] = FREE
+    share = floor_seen_share(cells(column), glob, local, resolution=RES)
+    assert 0.4 < share < 0.6
+
+
+def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
+    glob = np.full((120, 120), OCCUPIED, np.uint8)  # inside a thick structure
+    piece = np.zeros(glob.shape, bool)
+    piece[50:60, 50:60] = True
+    local = np.full(glob.shape, UNKNOWN, np.uint8)
+    local[piece] = FREE
+    assert floor_seen_share(cells(piece), glob, local, resolution=RES) == 1.0
