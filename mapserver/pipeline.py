@@ -1132,11 +1132,10 @@ def process_bundle(
     unfit = None
     # Every bundle with fit_check; else only a drifting one (a kink beyond the warp leaves a
     # large drift correction too): a clean session pays nothing for it.
-    check = settings.align.fit_check or warped.drift_m >= settings.align.fit_check_drift_m
-    if (alignment.trusted or warped.in_pieces) and check:
+    drifting = warped.drift_m >= settings.align.fit_check_drift_m
+    if (alignment.trusted or warped.in_pieces) and (settings.align.fit_check or drifting):
         unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))
     off_building = unfit is not None and bool(unfit.any())
-    drifting = warped.drift_m >= settings.align.fit_check_drift_m
     if alignment.trusted and settings.align.pieces and (off_building or drifting):
         # Trusted as a whole, yet a region lands off the building, or the warp had to bend the
         # map by decimetres: maybe a bend beyond the drift correction (a 5-6 degree kink leaves
