@@ -65,9 +65,7 @@ def explained_by_refit(
     if not g.any():
         return False
     rr, cc = rows - r0, cols - c0
-    mark = np.zeros(g.shape, np.uint8)
-    mark[rr, cc] = 1
-    own = cv2.dilate(mark, np.ones((3, 3), np.uint8)) > 0
+    own = _around(rows, cols, box, np.ones((3, 3), np.uint8))
     inner = math.ceil(margin_m / resolution)
     near_it = np.zeros(g.shape, bool)
     near_it[
@@ -160,11 +158,9 @@ def ghost_of_wall(
     target = g & near(local_walls[box], within)
     if not target.any():
         return False
-    mark = np.zeros(g.shape, np.uint8)
-    mark[rows - r0, cols - c0] = 1
     k = math.ceil(reach_m / resolution)
-    around = cv2.dilate(mark, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2))
-    pr, pc = nonzero_cells(added[box] & (around > 0))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2)
+    pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
     # Long enough to be a stretch of wall: its extent along its main axis.
@@ -228,13 +224,26 @@ def floor_seen_share(
     rows, cols = cells[:, 0], cells[:, 1]
     k = max(1, round(reach_m / resolution))
     box = box_of_cells(rows, cols, k, global_state.shape)
-    mark = np.zeros(global_state[box].shape, np.uint8)
-    mark[rows - box[0].start, cols - box[1].start] = 1
-    ring = (cv2.dilate(mark, np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0) & (mark == 0)
-    floor = ring & (global_state[box] == FREE)
+    floor = _around(rows, cols, box, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+    floor[rows - box[0].start, cols - box[1].start] = False  # around them, not the cells
+    floor &= global_state[box] == FREE
     if not floor.any():
         return 1.0
     return float(np.count_nonzero(local_state[box][floor] == FREE)) / np.count_nonzero(floor)
+
+
+def _around(
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    box: tuple[slice, slice],
+    kernel: NDArray[Any],
+) -> BoolArray:
+    """The cells (``rows``, ``cols`` on the grid) grown by ``kernel``: (h, w) bool on ``box``,
+    which holds them."""
+    shape = (box[0].stop - box[0].start, box[1].stop - box[1].start)
+    mark = np.zeros(shape, np.uint8)
+    mark[rows - box[0].start, cols - box[1].start] = 1
+    return np.asarray(cv2.dilate(mark, kernel) > 0)
 
 
 def _window(
