@@ -178,6 +178,21 @@ def test_a_filesystem_gone_read_only_leaves_the_upload_in_the_inbox_until_it_is_
         assert len(degraded_warnings(log)) == 1 and "recovered after" in log, log
 
 
+def _wait_held_for_the_store(daemon: Daemon, root: Path, name: str) -> None:
+    """Until the daemon holds bundle ``name`` for the map store, and its status file says it is
+    degraded."""
+    wait_until(
+        lambda: f"{name}: waits: maps " in daemon.log(),
+        timeout=60,
+        what="the bundle waiting for the map store",
+    )
+    wait_until(
+        lambda: (read_status(root / "inbox") or {}).get("degraded"),
+        timeout=10,
+        what="the status file to say degraded",
+    )
+
+
 def test_a_locked_map_store_keeps_the_bundle_waiting_and_applies_it_once_when_released(
     tmp_path: Path,
 ) -> None:
@@ -191,20 +206,11 @@ def test_a_locked_map_store_keeps_the_bundle_waiting_and_applies_it_once_when_re
             daemon.wait_ready()
             holder.execute("BEGIN IMMEDIATE")  # another writer (an operator's sqlite3 shell)
             upload(sources[name], layout(tmp_path)["inbox"])
-            wait_until(
-                lambda: f"{name}: waits: maps " in daemon.log(),
-                timeout=60,
-                what="the bundle waiting for the map store",
-            )
+            _wait_held_for_the_store(daemon, tmp_path, name)
             assert "database is locked" in daemon.log()
             assert taken(tmp_path) == [name]
             assert list((tmp_path / "outbox").iterdir()) == []
             assert visible(tmp_path / "failed") == []
-            wait_until(
-                lambda: (read_status(tmp_path / "inbox") or {}).get("degraded"),
-                timeout=10,
-                what="the status file to say degraded",
-            )
             holder.execute("COMMIT")
             wait_until(lambda: done(tmp_path, [name]), timeout=60, what="the result")
             assert daemon.stop() == 0, daemon.log()
@@ -233,17 +239,8 @@ def test_a_map_store_a_worker_cannot_read_keeps_the_bundle_and_processes_it_agai
         db.rename(db.with_name("store.db.moved"))
         db.write_bytes(b"not a database, " * 512)
         upload(sources[name], layout(tmp_path)["inbox"])
-        wait_until(
-            lambda: f"{name}: waits: maps " in daemon.log(),
-            timeout=60,
-            what="the bundle waiting for the map store",
-        )
+        _wait_held_for_the_store(daemon, tmp_path, name)
         assert "cannot read the map store" in daemon.log()
-        wait_until(
-            lambda: (read_status(tmp_path / "inbox") or {}).get("degraded"),
-            timeout=10,
-            what="the status file to say degraded",
-        )
         assert taken(tmp_path) == [name]
         assert visible(tmp_path / "failed") == [] and visible(tmp_path / "outbox") == []
         db.unlink()
