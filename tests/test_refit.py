@@ -190,3 +190,34 @@ def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
     local = np.full(glob.shape, UNKNOWN, np.uint8)
     local[piece] = FREE
     assert floor_seen_share(cells(piece), glob, local, resolution=RES) == 1.0
+
+
+def _column_seen_through_a_band(*, in_pieces: bool) -> list[object]:
+    """The pipeline's re-fit of a removed column seen free through a band of rays, the floor
+    on either side of the band in shadow (unknown), after a drift correction of 0.3 m; the
+    differences it keeps."""
+    from mapserver import pipeline
+    from mapserver.align import GlobalView
+    from mapserver.cluster import Difference
+    from mapserver.config import Config
+    from mapserver.geometry import Transform2D
+    from mapserver.grid import Grid
+
+    glob, column = _column_hall()
+    local = np.full(glob.shape, UNKNOWN, np.uint8)
+    local[:, 52:58] = FREE  # the band the robot looked along, 0.3 m wide, through the column
+    seen = column & (local == FREE)
+    grid = Grid(0.0, 0.0, RES, glob.shape[1], glob.shape[0])
+    view = GlobalView(grid, glob, glob == OCCUPIED)
+    aligned = pipeline._Aligned(
+        view, local, Transform2D(0.0, 0.0, 0.0), 0.3, None, in_pieces, None, True, 1.0, ()
+    )
+    gone = Difference("removed", (2.75, 3.25), (2.6, 3.0, 2.9, 3.5), 0.15, 60, cells(seen))
+    return list(pipeline._refit([gone], aligned, np.zeros(glob.shape, bool), Config()))
+
+
+def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() -> None:
+    # Its floor beside the band unseen (share 0.6): a fold only where a map was aligned
+    # in pieces, a narrow view where the smooth warp fitted the map whole.
+    assert len(_column_seen_through_a_band(in_pieces=False)) == 1
+    assert _column_seen_through_a_band(in_pieces=True) == []
