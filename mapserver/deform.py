@@ -210,29 +210,55 @@ def _source_coords(
     return u, v
 
 
+# A box of a grid, (row0, row1, col0, col1), and the states a warp puts in it.
+Landed = tuple[tuple[int, int, int, int], NDArray[np.uint8]]
+
+
 def warp_local(
     local: OccupancyMap,
     grid: Grid,
     nav2_from_slam: Transform2D,
     drift: DriftField | DriftStack | None = None,
 ) -> NDArray[np.uint8]:
-    """The local map's states on ``grid`` (nav2), through the rigid transform and the drift.
+    """The local map's states on ``grid`` (nav2), through the rigid transform and the drift
+    (see :func:`warp_local_box`; every cell off its box is unknown)."""
+    if drift is None:
+        return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
+    out = np.full(grid.shape, UNKNOWN, np.uint8)
+    landed = warp_local_box(local, grid, nav2_from_slam, drift)
+    if landed is not None:
+        (r0, r1, c0, c1), states = landed
+        out[r0:r1, c0:c1] = states
+    return out
+
+
+def warp_local_box(
+    local: OccupancyMap,
+    grid: Grid,
+    nav2_from_slam: Transform2D,
+    drift: DriftField | DriftStack | None = None,
+) -> Landed | None:
+    """The box of ``grid`` (nav2) the local map's known cells land in, through the rigid
+    transform and the drift, and the states there; None when none lands on the grid. Only that
+    box is computed and held: a piece of a long route lands on a small part of the view.
 
     For a grid cell at nav2 point ``x`` the source is ``T^-1(x - shift(T^-1 x))``: the shift is
     small and smooth, so evaluating it at the rigid pre-image is exact enough. The source
     coordinates are computed on nodes every ``WARP_STEP_PX`` pixels and interpolated linearly in
-    between, which is exact for the rigid part and as smooth as the drift field itself. Only the
-    box the known cells can land on is computed; it starts on a multiple of the step (a power of
-    two), so the nodes and their interpolation weights are those of the whole grid.
+    between, which is exact for the rigid part and as smooth as the drift field itself. The box
+    starts on a multiple of the step (a power of two), so the nodes and their interpolation
+    weights are those of the whole grid.
     """
     if drift is None:
-        return resample(local.state, Grid.of_map(local), grid, nav2_from_slam)
+        box = landing_box(local, grid, nav2_from_slam)
+        if box is None:
+            return None
+        return box, resample(local.state, Grid.of_map(local), grid.crop(box), nav2_from_slam)
     s = WARP_STEP_PX
-    out = np.full(grid.shape, UNKNOWN, np.uint8)
     margin_px = drift.max_shift_m() / grid.resolution + 2.0
     box = landing_box(local, grid, nav2_from_slam, margin_px=margin_px, step_px=s)
     if box is None:
-        return out
+        return None
     r0, r1, c0, c1 = box
     # Nodes at the positions cv2.resize samples for an upscale by s, starting one step before
     # the box so that its border replication never reaches a kept pixel. The box starts on a
@@ -248,7 +274,7 @@ def warp_local(
     full_v = cv2.resize(v.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
     full_u = np.ascontiguousarray(full_u[s : s + r1 - r0, s : s + c1 - c0])
     full_v = np.ascontiguousarray(full_v[s : s + r1 - r0, s : s + c1 - c0])
-    out[r0:r1, c0:c1] = cv2.remap(
+    states = cv2.remap(
         local.state,
         full_u,
         full_v,
@@ -256,4 +282,4 @@ def warp_local(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=UNKNOWN,
     )
-    return out
+    return box, np.asarray(states, np.uint8)

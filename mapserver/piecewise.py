@@ -25,9 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver import align as align_stage
+from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid, box_around, resample
+from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -295,13 +296,15 @@ def compose(
     pieces: Pieces,
     grid: Grid,
     *,
-    warp: Callable[[OccupancyMap, Transform2D], NDArray[np.uint8]] | None = None,
+    warp: Callable[[OccupancyMap, Transform2D], Landed | None] | None = None,
 ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
     """The trusted pieces on ``grid`` (nav2), each through its own transform, and the cells the
     untrusted ones land on (through theirs) that no trusted piece covers.
 
-    ``warp(piece_map, nav2_from_slam)`` puts a trusted piece (the local map with only its cells
-    known) onto ``grid``, for instance with its own drift correction; default: rigidly.
+    ``warp(piece_map, nav2_from_slam)`` puts a trusted piece (its cells of the local map,
+    cropped to them) onto ``grid``, for instance with its own drift correction: the box of
+    ``grid`` it lands in and its states there (see :func:`mapserver.deform.warp_local_box`), or
+    None; default: rigidly.
 
     Returns ``(state, left_out)``: (rows, cols) uint8 states (UNKNOWN outside the trusted
     pieces; where two pieces overlap, a wall in either is a wall) and (rows, cols) bool.
@@ -309,20 +312,20 @@ def compose(
     state = np.full(grid.shape, UNKNOWN, np.uint8)
     left_out = np.zeros(grid.shape, bool)
     disputed = np.zeros(grid.shape, bool)
-    source = Grid.of_map(local)
     for piece in pieces.pieces:
         if not piece.mask.any():
             continue
+        part = _sub_map(local, piece.mask)
         if piece.trusted and warp is not None:
-            warped = warp(_sub_map(local, piece.mask), piece.nav2_from_slam)
+            put = warp(part, piece.nav2_from_slam)
         else:
-            part = np.where(piece.mask, local.state, UNKNOWN).astype(np.uint8)
-            warped = resample(part, source, grid, piece.nav2_from_slam)
+            put = warp_local_box(part, grid, piece.nav2_from_slam)
         # Only the box the piece lands in: a long route's pieces each cover a small part.
-        window = box_around(warped != UNKNOWN, 0)
-        if window is None:
+        if put is None:
             continue
-        now, landed = state[window], warped[window]
+        (r0, r1, c0, c1), landed = put
+        window = (slice(r0, r1), slice(c0, c1))
+        now = state[window]
         known = landed != UNKNOWN
         if piece.trusted:
             # Two pieces that saw one cell differently (a wall bent one way in one, another in

@@ -759,14 +759,15 @@ def _warp_piece(
     shifts: list[float],
     part: OccupancyMap,
     transform: Transform2D,
-) -> np.ndarray:
-    """One piece's states on ``view``'s grid: through ``transform`` and its own drift
-    correction (``deform`` on), whose largest shift (metres) is appended to ``shifts``."""
+) -> deform.Landed | None:
+    """One piece's states on ``view``'s grid, in the box it lands in: through ``transform``
+    and its own drift correction (``deform`` on), whose largest shift (metres) is appended to
+    ``shifts``."""
     drift = None
     if config.pipeline.align.deform:
         drift = _estimate_drift(part, transform, view, config, reach_m=_drift_reach_m(config))
         shifts.append(drift.max_shift_m())
-    return deform.warp_local(part, view.grid, transform, drift)
+    return deform.warp_local_box(part, view.grid, transform, drift)
 
 
 def _reported_transform(
