@@ -186,7 +186,8 @@ def align_pieces(
     search_theta_rad: float = math.radians(10.0),
     agree_m: float = 0.5,
     min_walls: int = 60,
-) -> Pieces:
+    anchored: Callable[[Piece], bool] | None = None,
+) -> Pieces | None:
     """Align the local map in pieces along ``route_slam`` (N, 2), slam frame, metres.
 
     Pieces are aligned in route order from the end (where the robot was when it reported its
@@ -200,23 +201,28 @@ def align_pieces(
     match jumps; drift does not. Not the chain that holds the last piece: when the prior is
     off and the last piece took a wrong match (repeated rooms), the rest of the route,
     consistent with itself, was left out with it. ``view`` must cover where the pieces land.
+
+    With ``anchored``, the last piece (aligned first) must satisfy it, else None: nothing more
+    is aligned.
     """
     runs = route_pieces(route_slam, piece_m=piece_m)
     labels = label_cells(local, runs)
     cell_m2 = local.resolution**2
     observed = float(np.count_nonzero(labels >= 0)) * cell_m2
     found: list[Piece] = []
-    prior, anchored = start, False
+    prior, from_piece = start, False
     for i in reversed(range(len(runs))):
         mask = labels == i
         area = float(np.count_nonzero(mask)) * cell_m2
         junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
         walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
         if walls < min_walls:
+            if anchored is not None and i == len(runs) - 1:
+                return None  # nothing to anchor on
             found.append(Piece(i, mask, prior, 0.0, False, area, junction))
             continue
         sub = _sub_map(local, mask)
-        starts = [prior] if anchored or also_from is None else [prior, also_from]
+        starts = [prior] if from_piece or also_from is None else [prior, also_from]
         result = max(
             (
                 align_stage.align(
@@ -236,15 +242,17 @@ def align_pieces(
         t = result.nav2_from_slam
         piece = Piece(i, mask, t, result.score, result.trusted, area, junction)
         found.append(piece)
+        if anchored is not None and i == len(runs) - 1 and not anchored(piece):
+            return None
         if result.trusted:
-            prior, anchored = t, True
+            prior, from_piece = t, True
     found.reverse()
     keep = largest_chain(found, agree_m)
     found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
     return Pieces(tuple(found), observed)
 
 
-def _apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
+def apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
     """How far apart ``a`` and ``b`` put each of ``points`` (N, 2), metres."""
     return np.asarray(np.hypot(*(a.apply(points) - b.apply(points)).T))
 
@@ -252,7 +260,7 @@ def _apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
 def _gap(a: Piece, b: Piece) -> float:
     """How far apart the transforms of pieces ``a`` and ``b`` (later on the route) put the point
     where ``b``'s route starts, metres."""
-    return float(_apart(a.nav2_from_slam, b.nav2_from_slam, np.array([b.junction]))[0])
+    return float(apart(a.nav2_from_slam, b.nav2_from_slam, np.array([b.junction]))[0])
 
 
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
@@ -287,7 +295,7 @@ def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> fl
         if w == 0:
             continue
         corners = grid.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
-        worst = max(worst, float(_apart(piece.nav2_from_slam, transform, corners).max()))
+        worst = max(worst, float(apart(piece.nav2_from_slam, transform, corners).max()))
     return worst
 
 

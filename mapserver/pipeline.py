@@ -224,17 +224,21 @@ def _align_in_pieces(
     files: BundleFiles,
     local: OccupancyMap,
     view: align_stage.GlobalView,
-    alignment: align_stage.Alignment,
+    also_from: Transform2D | None,
     config: Config,
     *,
-    bent: bool = False,
+    confirm_prior: bool = False,
 ) -> piecewise.Pieces | None:
-    """The local map aligned in pieces along the route, when no rigid transform is trusted for
-    the whole of it (or the trusted one leaves a region off the building: ``bent``) and the
-    route is long enough for two pieces (else None)."""
+    """The local map aligned in pieces along the route, when the route is long enough for two
+    pieces (else None). The pieces start from the pose prior, and from ``also_from`` too (the
+    whole map's fit, for a prior that is off).
+
+    ``confirm_prior``: None too unless the last piece, aligned first, confirms the prior: it
+    scores, and puts the robot within ``jump_m`` of where the prior does.
+    """
     a = config.pipeline.align
     poses = files.manifest.trajectory_poses()
-    if (alignment.trusted and not bent) or not a.pieces or not a.refine or len(poses) < 2:
+    if not a.pieces or not a.refine or len(poses) < 2:
         return None
     route = np.array([[p.x, p.y] for p in poses])
     if float(np.hypot(*np.diff(route, axis=0).T).sum()) < 1.5 * a.piece_m:
@@ -242,6 +246,13 @@ def _align_in_pieces(
     # The prior is right where the robot was when it reported its pose (the route's end, where
     # the pieces start); the whole map's best rigid fit is a compromise over all of it.
     prior = files.manifest.nav2_from_slam_prior()
+    robot = files.manifest.pose.slam.to_pose()
+    at_robot = np.array([[robot.x, robot.y]])
+
+    def holds(last: piecewise.Piece) -> bool:
+        apart = piecewise.apart(last.nav2_from_slam, prior, at_robot)
+        return last.trusted and bool(apart[0] <= a.jump_m)
+
     return piecewise.align_pieces(
         local,
         view,
@@ -249,9 +260,10 @@ def _align_in_pieces(
         prior,
         # A prior that is off (mislocalized) starts no piece well; the whole map's search, when
         # it refined the prior, may have found the building.
-        also_from=alignment.nav2_from_slam if alignment.refined else None,
+        also_from=also_from,
         piece_m=a.piece_m,
         min_score=a.min_score,
+        anchored=holds if confirm_prior else None,
     )
 
 
@@ -616,9 +628,16 @@ def _drawing(link: MapLink | None, config: Config) -> OccupancyMap | None:
 
 def _align(
     inputs: _Inputs, config: Config, drawing: OccupancyMap | None
-) -> tuple[align_stage.GlobalView, align_stage.Alignment]:
-    """The whole local map's rigid alignment (slam -> nav2), and the view of the global map it
-    was searched on (the wide search's when that ran; its grid is in the nav2 frame)."""
+) -> tuple[align_stage.GlobalView, align_stage.Alignment, piecewise.Pieces | None]:
+    """The whole local map's rigid alignment (slam -> nav2), the view of the global map it was
+    searched on (the wide search's when that ran; its grid is in the nav2 frame), and the
+    pieces the map was aligned in when the narrow search found no trusted fit and they showed
+    that the prior holds (else None).
+
+    A long route whose whole map finds no fit in the narrow search is aligned in pieces before
+    the wide search runs: when its last piece puts the robot where the prior does, the map is
+    bent and the prior is right, and the wide search (a third of a long drifting route's time)
+    has nothing to find. Else the pieces are left for after the wide search."""
     a = config.pipeline.align
     files, local = inputs.files, inputs.local
     prior = files.manifest.nav2_from_slam_prior()
@@ -644,6 +663,13 @@ def _align(
         )
         return views[-1]
 
+    pieces: list[piecewise.Pieces] = []
+
+    def prior_confirmed(view: align_stage.GlobalView, narrow_best: Transform2D) -> bool:
+        found = _align_in_pieces(inputs.files, local, view, narrow_best, config, confirm_prior=True)
+        pieces.extend([found] if found is not None else [])
+        return found is not None
+
     # The view for the narrow search first (most priors are within a few degrees): the
     # wide one, several times larger, is built only when the wide search runs.
     narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
@@ -660,8 +686,9 @@ def _align(
         min_gain=a.min_gain,
         jump_m=a.jump_m,
         pivot_slam=pivot,
+        prior_confirmed=prior_confirmed if a.pieces else None,
     )
-    return views[-1], result
+    return views[-1], result, pieces[0] if pieces and not result.trusted else None
 
 
 @dataclass(frozen=True)
@@ -1126,12 +1153,12 @@ def process_bundle(
     link = _map_link(config.maps, files, inputs.global_map, bundle_dir, link_warnings)
     drawing = _drawing(link, config)
 
-    search_view, alignment = stages.run("align", partial(_align, inputs, config, drawing))
+    search_view, alignment, pieces = stages.run("align", partial(_align, inputs, config, drawing))
     warnings += alignment.warnings
-    pieces = None
-    if not alignment.trusted and settings.align.pieces:
+    if pieces is None and not alignment.trusted and settings.align.pieces:
+        also_from = alignment.nav2_from_slam if alignment.refined else None
         pieces = stages.run(
-            "pieces", partial(_align_in_pieces, files, local, search_view, alignment, config)
+            "pieces", partial(_align_in_pieces, files, local, search_view, also_from, config)
         )
     warped = stages.run("warp", partial(_warp, local, search_view, alignment, pieces, config))
     transform = _reported_transform(local, alignment, warped)
@@ -1150,7 +1177,14 @@ def process_bundle(
         # Aligned in pieces, each region fits on its own or is left out, if they find a bend.
         pieces = stages.run(
             "pieces",
-            partial(_align_in_pieces, files, local, search_view, alignment, config, bent=True),
+            partial(
+                _align_in_pieces,
+                files,
+                local,
+                search_view,
+                alignment.nav2_from_slam if alignment.refined else None,
+                config,
+            ),
         )
         if (
             pieces is not None

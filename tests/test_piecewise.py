@@ -13,7 +13,7 @@ import pytest
 import yaml
 from worlds import changed, office
 
-from mapserver import piecewise
+from mapserver import piecewise, pipeline
 from mapserver.bundle import sha256_file
 from mapserver.config import Config
 from mapserver.geometry import Transform2D
@@ -422,6 +422,33 @@ def test_pieces_start_from_the_whole_map_s_fit_when_the_prior_is_off(tmp_path: P
     assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] >= 1, a
     for box in BOXES[a["pieces"] - a["trusted_pieces"] :]:
         assert len(_near(r["differences"], box)) == 1, r["differences"]
+
+
+def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A 20-degree kink, the pose prior right: the narrow search finds no fit of the whole map
+    to trust; the last piece, aligned first, puts the robot where the prior does: the map is
+    bent, the prior holds, and the wide search (its view several times larger) never runs.
+    The same map with the prior 1.5 m and 20 degrees off: the last piece finds nothing near
+    the prior, and the wide search runs before the pieces."""
+    views: list[object] = []
+    real = pipeline.align_stage.make_view
+
+    def counted(*args: object, **kwargs: object) -> object:
+        views.append(kwargs["search_theta_rad"])
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pipeline.align_stage, "make_view", counted)
+    a = process_bundle(_bent_bundle(tmp_path / "right", 20.0), Config()).result["alignment"]
+    assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] == 1, a
+    assert views == [pytest.approx(math.radians(8.0))]
+
+    views.clear()
+    off = _bent_bundle(tmp_path / "off", 12.0, prior_off=(1.5, -1.0, 20.0))
+    a = process_bundle(off, Config()).result["alignment"]
+    assert views == [pytest.approx(math.radians(8.0)), pytest.approx(math.radians(35.0))]
+    assert a["trusted"] is True
 
 
 def test_compared_whole_when_no_piece_is_trusted_reports_the_share_compared(
