@@ -860,7 +860,7 @@ def align(
     narrow_theta_rad: float = math.radians(8.0),
     pivot_slam: tuple[float, float] | None = None,
     widen: Callable[[], GlobalView] | None = None,
-    prior_confirmed: Callable[[GlobalView, Transform2D], bool] | None = None,
+    prior_confirmed: Callable[[Transform2D], bool] | None = None,
 ) -> Alignment:
     """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
 
@@ -879,7 +879,7 @@ def align(
     ``view`` must cover the narrow search at least. When it covers only that, ``widen`` gives
     the view the wide search needs (built only if the wide search runs).
 
-    ``prior_confirmed(view, narrow_best)``, when given, is asked before the wide search when the
+    ``prior_confirmed(narrow_best)``, when given, is asked before the wide search when the
     narrow search's best fit is not trusted: True says the prior holds after all (a part of the
     map aligned on its own put the robot where the prior does: the map is bent, the prior is
     not off), and the wide search is skipped.
@@ -961,11 +961,7 @@ def align(
     if (
         chosen_score < min_score + 0.1
         and search_theta_rad > narrow_theta_rad
-        and (
-            prior_confirmed is None
-            or chosen_score >= min_score
-            or not prior_confirmed(view, chosen)
-        )
+        and (prior_confirmed is None or chosen_score >= min_score or not prior_confirmed(chosen))
     ):
         if widen is not None:
             # The scores and the searches below read these two.

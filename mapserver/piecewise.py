@@ -446,6 +446,7 @@ __all__ = [
     "Piece",
     "Pieces",
     "align_pieces",
+    "apart",
     "compose",
     "departure",
     "fit_rigid",

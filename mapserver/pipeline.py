@@ -99,12 +99,15 @@ def on_stage(listener: Callable[[str], None] | None) -> None:
 class _Stages:
     """Times each stage, logs one line per stage with the bundle id, and tags errors with it.
 
-    A stage that runs again (a bent map aligned in pieces after the whole map's fit: pieces,
-    warp and fit twice) adds its time to the first run's."""
+    A stage that runs again (a bent map aligned in pieces after the whole map's fit: warp and
+    fit twice) adds its time to the first run's. A stage run inside another (the pieces a long
+    route is aligned in before the wide search, inside align) counts for itself only: its time
+    is taken out of the enclosing stage's."""
 
     def __init__(self, bundle_id: str) -> None:
         self.bundle_id = bundle_id
         self._ms: dict[str, float] = {}
+        self._open: list[str] = []  # the stages running, outermost first
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -114,6 +117,7 @@ class _Stages:
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
         start = time.perf_counter()
+        self._open.append(name)
         try:
             if _stage_listener is not None:
                 _stage_listener(name)
@@ -141,6 +145,12 @@ class _Stages:
             ms = (time.perf_counter() - start) * 1000.0
             self._ms[name] = self._ms.get(name, 0.0) + ms
             log.info("%s: %s %.1f ms", self.bundle_id, name, ms)
+            self._open.pop()
+            if self._open:
+                outer = self._open[-1]
+                self._ms[outer] = self._ms.get(outer, 0.0) - ms
+                if _stage_listener is not None:
+                    _stage_listener(outer)  # back in the enclosing stage
 
     def run(self, name: str, fn: Callable[[], T]) -> T:
         with self.stage(name):
@@ -258,8 +268,8 @@ def _align_in_pieces(
         view,
         route,
         prior,
-        # A prior that is off (mislocalized) starts no piece well; the whole map's search, when
-        # it refined the prior, may have found the building.
+        # A prior that is off (mislocalized) starts no piece well; the whole map's search (its
+        # narrow search's best fit, before the wide search) may have found the building.
         also_from=also_from,
         piece_m=a.piece_m,
         min_score=a.min_score,
@@ -627,7 +637,7 @@ def _drawing(link: MapLink | None, config: Config) -> OccupancyMap | None:
 
 
 def _align(
-    inputs: _Inputs, config: Config, drawing: OccupancyMap | None
+    inputs: _Inputs, config: Config, drawing: OccupancyMap | None, stages: _Stages
 ) -> tuple[align_stage.GlobalView, align_stage.Alignment, piecewise.Pieces | None]:
     """The whole local map's rigid alignment (slam -> nav2), the view of the global map it was
     searched on (the wide search's when that ran; its grid is in the nav2 frame), and the
@@ -644,11 +654,12 @@ def _align(
     robot = files.manifest.pose.slam.to_pose()
     pivot = (robot.x, robot.y)
     wide_rad = math.radians(a.search_theta_deg)
-    views: list[align_stage.GlobalView] = []
+    built: dict[float, align_stage.GlobalView] = {}
+    views: list[align_stage.GlobalView] = []  # as used, the last one the search's
 
     def view_for(theta_rad: float) -> align_stage.GlobalView:
-        views.append(
-            align_stage.make_view(
+        if theta_rad not in built:
+            built[theta_rad] = align_stage.make_view(
                 inputs.global_map,
                 local,
                 prior,
@@ -660,13 +671,26 @@ def _align(
                 wall_reach_m=_drift_reach_m(config),
                 drawing=drawing,
             )
-        )
+        views.append(built[theta_rad])
         return views[-1]
 
     pieces: list[piecewise.Pieces] = []
 
-    def prior_confirmed(view: align_stage.GlobalView, narrow_best: Transform2D) -> bool:
-        found = _align_in_pieces(inputs.files, local, view, narrow_best, config, confirm_prior=True)
+    def prior_confirmed(narrow_best: Transform2D) -> bool:
+        # On the wide view: a long route's far pieces, bent by drift, may land beyond the
+        # narrow one (the wide search, if it runs after all, searches the same view).
+        found = stages.run(
+            "pieces",
+            partial(
+                _align_in_pieces,
+                inputs.files,
+                local,
+                view_for(wide_rad),
+                narrow_best,
+                config,
+                confirm_prior=True,
+            ),
+        )
         pieces.extend([found] if found is not None else [])
         return found is not None
 
@@ -1153,7 +1177,9 @@ def process_bundle(
     link = _map_link(config.maps, files, inputs.global_map, bundle_dir, link_warnings)
     drawing = _drawing(link, config)
 
-    search_view, alignment, pieces = stages.run("align", partial(_align, inputs, config, drawing))
+    search_view, alignment, pieces = stages.run(
+        "align", partial(_align, inputs, config, drawing, stages)
+    )
     warnings += alignment.warnings
     if pieces is None and not alignment.trusted and settings.align.pieces:
         also_from = alignment.nav2_from_slam if alignment.refined else None

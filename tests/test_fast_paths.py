@@ -287,6 +287,34 @@ def test_drift_warp_of_the_landing_box_is_the_whole_grid_one(seed: int) -> None:
     assert np.array_equal(got, _warp_whole_grid(local, grid, transform, drift))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_a_piece_warped_into_its_landing_box_is_the_whole_grid_warp_there(seed: int) -> None:
+    """deform.warp_local_box (what each piece is warped with): every known cell of the whole
+    grid's warp lies in the box; with drift the box holds exactly that warp's cells; rigidly,
+    the same up to nearest-neighbour ties of the cropped lattices; None off the grid."""
+    rng = np.random.default_rng(seed)
+    state = _states(rng, (140, 170))
+    state[:, : rng.integers(0, 60)] = UNKNOWN
+    local = from_states(state, 0.05, (rng.uniform(-3, 3), rng.uniform(-3, 3), 0.0))
+    grid = Grid(-12.3, -11.1, 0.05, 501, 467)
+    transform = Transform2D(rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-2, 2))
+    shifts = rng.normal(0.0, 0.3, (5, 6, 2)).astype(np.float32)
+    drift = deform.DriftField(-4.0, -4.0, 3.0, shifts)
+    for field in (drift, None):
+        whole = deform.warp_local(local, grid, transform, field)
+        landed = deform.warp_local_box(local, grid, transform, field)
+        assert landed is not None
+        (r0, r1, c0, c1), states = landed
+        outside = whole.copy()
+        outside[r0:r1, c0:c1] = UNKNOWN
+        assert (whole != UNKNOWN).any() and not (outside != UNKNOWN).any()
+        differ = np.count_nonzero(states != whole[r0:r1, c0:c1])
+        assert differ == 0 if field is not None else differ <= 0.001 * states.size
+    far = Transform2D(0.0, 500.0, 500.0)
+    assert deform.warp_local_box(local, grid, far, None) is None
+    assert deform.warp_local_box(local, grid, far, drift) is None
+
+
 def _plain_consistency(local, transform, view, tolerance_m):  # type: ignore[no-untyped-def]
     """consistency() as first written: the whole view, a distance transform."""
     warped = resample(local.state, Grid.of_map(local), view.grid, transform)

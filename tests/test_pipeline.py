@@ -234,3 +234,25 @@ def test_a_stage_that_runs_twice_reports_the_time_of_both_runs(
     stages.run("warp", lambda: None)
     stages.run("fit", lambda: None)
     assert stages.timings_ms == {"warp": 40.0, "fit": 5.0}
+
+
+def test_a_stage_run_inside_another_counts_for_itself_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pieces a long route is aligned in before the wide search run inside align: each
+    stage reports its own time, and a listener hears the enclosing stage again after."""
+    from mapserver import pipeline
+
+    clock = [0.0]
+    monkeypatch.setattr(pipeline.time, "perf_counter", lambda: clock[0])
+    heard: list[str] = []
+    pipeline.on_stage(heard.append)
+    try:
+        stages = pipeline._Stages("b")
+        with stages.stage("align"):
+            clock[0] += 0.1
+            with stages.stage("pieces"):
+                clock[0] += 0.3
+            clock[0] += 0.05
+    finally:
+        pipeline.on_stage(None)
+    assert stages.timings_ms == {"align": 150.0, "pieces": 300.0}
+    assert heard == ["align", "pieces", "align"]

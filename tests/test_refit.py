@@ -210,7 +210,16 @@ def _column_seen_through_a_band(*, in_pieces: bool) -> list[object]:
     grid = Grid(0.0, 0.0, RES, glob.shape[1], glob.shape[0])
     view = GlobalView(grid, glob, glob == OCCUPIED)
     aligned = pipeline._Aligned(
-        view, local, Transform2D(0.0, 0.0, 0.0), 0.3, None, in_pieces, None, True, 1.0, ()
+        view=view,
+        local_state=local,
+        transform=Transform2D(0.0, 0.0, 0.0),
+        drift_m=0.3,
+        pieces=None,
+        in_pieces=in_pieces,
+        left_out=None,
+        compared=True,
+        kept=1.0,
+        warnings=(),
     )
     gone = Difference("removed", (2.75, 3.25), (2.6, 3.0, 2.9, 3.5), 0.15, 60, cells(seen))
     return list(pipeline._refit([gone], aligned, np.zeros(glob.shape, bool), Config()))
