@@ -283,6 +283,25 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     return {p.index for p in best}
 
 
+def lands_within(local: OccupancyMap, pieces: Pieces, grid: Grid, margin_m: float) -> bool:
+    """Whether every aligned piece (one that scored at all) lands on ``grid`` through its own
+    transform with ``margin_m`` to spare on every side: the view it was searched on held it and
+    the room around it. Over the corners of each piece's bounding box."""
+    source = Grid.of_map(local)
+    margin_px = margin_m / grid.resolution
+    for piece in pieces.pieces:
+        x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
+        if w == 0 or piece.score <= 0:
+            continue
+        corners = source.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
+        px = grid.to_pixel(piece.nav2_from_slam.apply(corners))
+        if (px.min(axis=0) < margin_px).any() or (
+            px.max(axis=0) > np.array([grid.width, grid.height]) - margin_px
+        ).any():
+            return False
+    return True
+
+
 def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> float:
     """How far, at most, a trusted piece's transform puts its own cells from where
     ``transform`` (one rigid fit of the whole local map) puts them, metres; 0 with no trusted
@@ -451,6 +470,7 @@ __all__ = [
     "departure",
     "fit_rigid",
     "label_cells",
+    "lands_within",
     "largest_chain",
     "route_pieces",
     "unfit_tiles",

@@ -64,6 +64,9 @@ _ANALYSIS_MARGIN_M = 1.0
 # The alignment searches rotations within this first, and over search_theta_deg only when
 # that finds no convincing fit.
 _NARROW_SEARCH_DEG = 8.0
+# How far a piece's search may move it from where it starts (piecewise.align_pieces's
+# search_xy_m), metres.
+_PIECE_SEARCH_M = 1.5
 
 # Decoded global maps, kept across bundles in this process (a daemon worker serves many bundles
 # of the same building). Three maps: the one in use, the one before it, and the fleet map's
@@ -273,6 +276,7 @@ def _align_in_pieces(
         also_from=also_from,
         piece_m=a.piece_m,
         min_score=a.min_score,
+        search_xy_m=_PIECE_SEARCH_M,
         anchored=holds if confirm_prior else None,
     )
 
@@ -677,20 +681,20 @@ def _align(
     pieces: list[piecewise.Pieces] = []
 
     def prior_confirmed(narrow_best: Transform2D) -> bool:
-        # On the wide view: a long route's far pieces, bent by drift, may land beyond the
-        # narrow one (the wide search, if it runs after all, searches the same view).
-        found = stages.run(
-            "pieces",
-            partial(
-                _align_in_pieces,
-                inputs.files,
-                local,
-                view_for(wide_rad),
-                narrow_best,
-                config,
-                confirm_prior=True,
-            ),
-        )
+        def aligned_on(view: align_stage.GlobalView) -> piecewise.Pieces | None:
+            return _align_in_pieces(
+                inputs.files, local, view, narrow_best, config, confirm_prior=True
+            )
+
+        narrow_view = views[-1]
+        found = stages.run("pieces", partial(aligned_on, narrow_view))
+        room = _view_margin_m(config) + _PIECE_SEARCH_M
+        if found is not None and not piecewise.lands_within(local, found, narrow_view.grid, room):
+            # A piece bent by drift landed near the narrow view's edge, where its search and
+            # the room the differences need ran off the view: again on the wide view (the wide
+            # search, if it ran after all, would search it too).
+            log.info("%s: a piece landed near the narrow view's edge", stages.bundle_id)
+            found = stages.run("pieces", partial(aligned_on, view_for(wide_rad)))
         pieces.extend([found] if found is not None else [])
         return found is not None
 

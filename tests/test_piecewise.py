@@ -359,6 +359,21 @@ def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior
     assert piecewise.largest_chain([_piece(0, 0.0, score_ok=False)], agree_m=0.5) == set()
 
 
+def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
+    local = from_states(np.full((40, 60), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 10:50] = True  # x 1..5 m, y 1..3 m
+    piece = piecewise.Piece(0, mask, Transform2D(0.0, 0.0, 0.0), 0.9, True, 8.0, (0.0, 0.0))
+    view = Grid(-3.0, -3.0, 0.1, 120, 100)  # x -3..9 m, y -3..7 m: 4 m to spare all round
+    assert piecewise.lands_within(local, piecewise.Pieces((piece,), 8.0), view, 2.0)
+    assert not piecewise.lands_within(local, piecewise.Pieces((piece,), 8.0), view, 4.5)
+    moved = dataclasses.replace(piece, nav2_from_slam=Transform2D(0.0, 3.5, 0.0))  # 0.5 m east
+    assert not piecewise.lands_within(local, piecewise.Pieces((moved,), 8.0), view, 2.0)
+    # A piece never aligned (too few walls: no score) is not asked where it lands.
+    idle = dataclasses.replace(moved, score=0.0)
+    assert piecewise.lands_within(local, piecewise.Pieces((idle,), 8.0), view, 2.0)
+
+
 def test_compose_keeps_only_trusted_pieces_and_marks_the_rest_left_out() -> None:
     state = np.full((40, 60), UNKNOWN, np.uint8)
     state[10:30, 5:55] = 0  # FREE
@@ -430,8 +445,9 @@ def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
     """A 20-degree kink, the pose prior right: the narrow search finds no fit of the whole map
     to trust; the last piece, aligned first, puts the robot where the prior does: the map is
     bent, the prior holds, and the wide search (a third of a long drifting route's time) never
-    runs; the pieces are timed as their own stage. The same map with the prior 1.5 m and 20
-    degrees off: the last piece finds nothing near the prior, and the wide search runs."""
+    runs; the pieces are timed as their own stage. Pieces that land near the narrow view's edge
+    are aligned again on the wide view. The same map with the prior 1.5 m and 20 degrees off:
+    the last piece finds nothing near the prior, and the wide search runs."""
     searched: list[float] = []
     real = pipeline.align_stage._search
 
@@ -445,6 +461,23 @@ def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
     assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] == 1, a
     assert max(searched) < math.radians(10.5)  # the narrow search and the pieces' (10 degrees)
     assert {"align", "pieces"} <= set(r["timings_ms"])
+
+    # A piece near the narrow view's edge: the pieces again on the wide view, still no search
+    # over the wide angle.
+    searched.clear()
+    views: list[float] = []
+    make_view = pipeline.align_stage.make_view
+
+    def counted(*args: object, **kwargs: object) -> object:
+        views.append(float(kwargs["search_theta_rad"]))  # type: ignore[arg-type]
+        return make_view(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pipeline.align_stage, "make_view", counted)
+    monkeypatch.setattr(piecewise, "lands_within", lambda *args: False)
+    a = process_bundle(_bent_bundle(tmp_path / "edge", 20.0), Config()).result["alignment"]
+    assert a["trusted"] is True and a["trusted_pieces"] == 1, a
+    assert views == [pytest.approx(math.radians(8.0)), pytest.approx(math.radians(35.0))]
+    assert max(searched) < math.radians(10.5)
 
     searched.clear()
     off = _bent_bundle(tmp_path / "off", 12.0, prior_off=(1.5, -1.0, 20.0))
