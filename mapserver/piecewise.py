@@ -217,35 +217,34 @@ def align_pieces(
         junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
         walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
         if walls < min_walls:
-            if anchored is not None and i == len(runs) - 1:
-                return None  # nothing to anchor on
-            found.append(Piece(i, mask, prior, 0.0, False, area, junction))
-            continue
-        sub = _sub_map(local, mask)
-        starts = [prior] if from_piece or also_from is None else [prior, also_from]
-        result = max(
-            (
-                align_stage.align(
-                    sub,
-                    view,
-                    t0,
-                    search_xy_m=search_xy_m,
-                    search_theta_rad=search_theta_rad,
-                    narrow_theta_rad=search_theta_rad,
-                    min_score=min_score,
-                    pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
-                )
-                for t0 in starts
-            ),
-            key=lambda r: r.score,
-        )
-        t = result.nav2_from_slam
-        piece = Piece(i, mask, t, result.score, result.trusted, area, junction)
-        found.append(piece)
+            # Too few walls to align: the piece keeps its start, never scores.
+            piece = Piece(i, mask, prior, 0.0, False, area, junction)
+        else:
+            sub = _sub_map(local, mask)
+            starts = [prior] if from_piece or also_from is None else [prior, also_from]
+            result = max(
+                (
+                    align_stage.align(
+                        sub,
+                        view,
+                        t0,
+                        search_xy_m=search_xy_m,
+                        search_theta_rad=search_theta_rad,
+                        narrow_theta_rad=search_theta_rad,
+                        min_score=min_score,
+                        pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+                    )
+                    for t0 in starts
+                ),
+                key=lambda r: r.score,
+            )
+            t = result.nav2_from_slam
+            piece = Piece(i, mask, t, result.score, result.trusted, area, junction)
+            if result.trusted:
+                prior, from_piece = t, True
         if anchored is not None and i == len(runs) - 1 and not anchored(piece):
             return None
-        if result.trusted:
-            prior, from_piece = t, True
+        found.append(piece)
     found.reverse()
     keep = largest_chain(found, agree_m)
     found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
@@ -283,17 +282,25 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     return {p.index for p in best}
 
 
+def _corners(local: OccupancyMap, piece: Piece) -> FloatArray | None:
+    """The slam-frame corners (4, 2) of the bounding box of ``piece``'s cells; None when it
+    has none."""
+    x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
+    if w == 0:
+        return None
+    box = np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float)
+    return Grid.of_map(local).to_world(box)
+
+
 def lands_within(local: OccupancyMap, pieces: Pieces, grid: Grid, margin_m: float) -> bool:
     """Whether every aligned piece (one that scored at all) lands on ``grid`` through its own
     transform with ``margin_m`` to spare on every side: the view it was searched on held it and
     the room around it. Over the corners of each piece's bounding box."""
-    source = Grid.of_map(local)
     margin_px = margin_m / grid.resolution
     for piece in pieces.pieces:
-        x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
-        if w == 0 or piece.score <= 0:
+        corners = _corners(local, piece) if piece.score > 0 else None
+        if corners is None:
             continue
-        corners = source.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
         px = grid.to_pixel(piece.nav2_from_slam.apply(corners))
         if (px.min(axis=0) < margin_px).any() or (
             px.max(axis=0) > np.array([grid.width, grid.height]) - margin_px
@@ -307,14 +314,11 @@ def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> fl
     ``transform`` (one rigid fit of the whole local map) puts them, metres; 0 with no trusted
     piece. Over the corners of each piece's bounding box: the gap between two rigid transforms
     grows linearly across a region, so its largest is at a corner."""
-    grid = Grid.of_map(local)
     worst = 0.0
     for piece in pieces.trusted:
-        x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
-        if w == 0:
-            continue
-        corners = grid.to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]], float))
-        worst = max(worst, float(apart(piece.nav2_from_slam, transform, corners).max()))
+        corners = _corners(local, piece)
+        if corners is not None:
+            worst = max(worst, float(apart(piece.nav2_from_slam, transform, corners).max()))
     return worst
 
 
