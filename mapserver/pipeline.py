@@ -658,8 +658,8 @@ def _align(
     robot = files.manifest.pose.slam.to_pose()
     pivot = (robot.x, robot.y)
     wide_rad = math.radians(a.search_theta_deg)
+    narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
     built: dict[float, align_stage.GlobalView] = {}
-    views: list[align_stage.GlobalView] = []  # as used, the last one the search's
 
     def view_for(theta_rad: float) -> align_stage.GlobalView:
         if theta_rad not in built:
@@ -675,8 +675,7 @@ def _align(
                 wall_reach_m=_drift_reach_m(config),
                 drawing=drawing,
             )
-        views.append(built[theta_rad])
-        return views[-1]
+        return built[theta_rad]
 
     pieces: list[piecewise.Pieces] = []
 
@@ -686,7 +685,7 @@ def _align(
                 inputs.files, local, view, narrow_best, config, confirm_prior=True
             )
 
-        narrow_view = views[-1]
+        narrow_view = built[narrow]
         found = stages.run("pieces", partial(aligned_on, narrow_view))
         room = _view_margin_m(config) + _PIECE_SEARCH_M
         if found is not None and not piecewise.lands_within(local, found, narrow_view.grid, room):
@@ -699,8 +698,8 @@ def _align(
         return found is not None
 
     # The view for the narrow search first (most priors are within a few degrees): the
-    # wide one, several times larger, is built only when the wide search runs.
-    narrow = min(math.radians(_NARROW_SEARCH_DEG), wide_rad)
+    # wide one, several times larger, is built only when the wide search (or a piece near the
+    # narrow view's edge) needs it, and then it is the one the rest works on.
     result = align_stage.align(
         local,
         view_for(narrow),
@@ -716,7 +715,8 @@ def _align(
         pivot_slam=pivot,
         prior_confirmed=prior_confirmed if a.pieces else None,
     )
-    return views[-1], result, pieces[0] if pieces and not result.trusted else None
+    view = built.get(wide_rad, built[narrow])
+    return view, result, pieces[0] if pieces and not result.trusted else None
 
 
 @dataclass(frozen=True)
@@ -1185,11 +1185,11 @@ def process_bundle(
         "align", partial(_align, inputs, config, drawing, stages)
     )
     warnings += alignment.warnings
+    # The pieces, when they are wanted below, start from the whole map's fit too.
+    whole_fit = alignment.nav2_from_slam if alignment.refined else None
+    in_pieces = partial(_align_in_pieces, files, local, search_view, whole_fit, config)
     if pieces is None and not alignment.trusted and settings.align.pieces:
-        also_from = alignment.nav2_from_slam if alignment.refined else None
-        pieces = stages.run(
-            "pieces", partial(_align_in_pieces, files, local, search_view, also_from, config)
-        )
+        pieces = stages.run("pieces", in_pieces)
     warped = stages.run("warp", partial(_warp, local, search_view, alignment, pieces, config))
     transform = _reported_transform(local, alignment, warped)
     misfit_m = settings.diff.max_misfit_tolerance_m
@@ -1205,17 +1205,7 @@ def process_bundle(
         # map by decimetres: maybe a bend beyond the drift correction (a 5-6 degree kink leaves
         # no tile off the building, the warp takes most of it, and still walls land doubled).
         # Aligned in pieces, each region fits on its own or is left out, if they find a bend.
-        pieces = stages.run(
-            "pieces",
-            partial(
-                _align_in_pieces,
-                files,
-                local,
-                search_view,
-                alignment.nav2_from_slam if alignment.refined else None,
-                config,
-            ),
-        )
+        pieces = stages.run("pieces", in_pieces)
         if (
             pieces is not None
             and pieces.trusted
