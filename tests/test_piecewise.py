@@ -439,6 +439,20 @@ def test_pieces_start_from_the_whole_map_s_fit_when_the_prior_is_off(tmp_path: P
         assert len(_near(r["differences"], box)) == 1, r["differences"]
 
 
+def _recorded(monkeypatch: pytest.MonkeyPatch, name: str, angle: str) -> list[float]:
+    """The ``angle`` keyword (radians) of every call of ``mapserver.align``'s ``name``, from now
+    on, in a list that grows as they are made."""
+    real = getattr(pipeline.align_stage, name)
+    seen: list[float] = []
+
+    def recording(*args: object, **kwargs: object) -> object:
+        seen.append(float(kwargs[angle]))  # type: ignore[arg-type]
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline.align_stage, name, recording)
+    return seen
+
+
 def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -448,14 +462,7 @@ def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
     runs; the pieces are timed as their own stage. Pieces that land near the narrow view's edge
     are aligned again on the wide view. The same map with the prior 1.5 m and 20 degrees off:
     the last piece finds nothing near the prior, and the wide search runs."""
-    searched: list[float] = []
-    real = pipeline.align_stage._search
-
-    def spy(*args: object, **kwargs: object) -> object:
-        searched.append(float(kwargs["theta_half_rad"]))  # type: ignore[arg-type]
-        return real(*args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(pipeline.align_stage, "_search", spy)
+    searched = _recorded(monkeypatch, "_search", "theta_half_rad")
     r = process_bundle(_bent_bundle(tmp_path / "right", 20.0), Config()).result
     a = r["alignment"]
     assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] == 1, a
@@ -465,14 +472,7 @@ def test_a_bent_map_whose_last_piece_confirms_the_prior_skips_the_wide_search(
     # A piece near the narrow view's edge: the pieces again on the wide view, still no search
     # over the wide angle.
     searched.clear()
-    views: list[float] = []
-    make_view = pipeline.align_stage.make_view
-
-    def counted(*args: object, **kwargs: object) -> object:
-        views.append(float(kwargs["search_theta_rad"]))  # type: ignore[arg-type]
-        return make_view(*args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(pipeline.align_stage, "make_view", counted)
+    views = _recorded(monkeypatch, "make_view", "search_theta_rad")
     monkeypatch.setattr(piecewise, "lands_within", lambda *args: False)
     a = process_bundle(_bent_bundle(tmp_path / "edge", 20.0), Config()).result["alignment"]
     assert a["trusted"] is True and a["trusted_pieces"] == 1, a
