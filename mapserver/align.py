@@ -199,16 +199,22 @@ def _median_ink(m: OccupancyMap, labels: NDArray[np.int32], n: int) -> NDArray[n
 
 
 def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], bool]:
-    """The occupancies a drawn line may have (clearly darker than anything read as free, not
-    the unknown grey), and whether more cells that are not black have them than cells are
-    black (a drawing, not a scan)."""
+    """The occupancies a drawn line may have (darker than anything read as free, not the
+    unknown grey), and whether more cells that are not black are clearly darker than free
+    than cells are black (a drawing, not a scan).
+
+    A line's own pixels need only be darker than what the thresholds read as free: a line
+    drawn thin and slanted spreads its ink over two pixels, each lighter than the line. What
+    makes it a line is its contrast with what lies beside it (the top-hat); the map's
+    thresholds say what is not floor."""
     unknown_level = counts.unknown_level()
     levels = np.arange(256)
-    grey = (np.abs(levels - unknown_level) > _UNKNOWN_BAND) & (
-        levels > min(counts.free_top() + _LINE_CONTRAST // 3, 254)
-    )
+    not_unknown = np.abs(levels - unknown_level) > _UNKNOWN_BAND
+    free_top = counts.free_top()
+    grey = not_unknown & (levels > min(free_top, 254))
+    clearly = not_unknown & (levels > min(free_top + _LINE_CONTRAST // 3, 254))
     n_black = int(counts.occupied.sum())
-    return grey, int((counts.free + counts.unknown)[grey].sum()) > n_black
+    return grey, int((counts.free + counts.unknown)[clearly].sum()) > n_black
 
 
 def drawn_walls(m: OccupancyMap) -> NDArray[np.bool_]:

@@ -67,6 +67,27 @@ def test_a_drawn_outline_is_a_wall_as_thick_as_a_lidar_sees_it() -> None:
     assert structure_mask(m)[40, 20:100].all()
 
 
+def test_a_faint_slanted_line_split_over_two_pixels_is_a_drawn_wall() -> None:
+    # A pastel fill read as free (p 0.18: the lightest grey a free cell has is near the free
+    # threshold), and on the paper beside it an outline drawn at 30 degrees whose ink the
+    # anti-aliasing splits over two pixels, each only a little darker than the fill (p 0.21,
+    # read as unknown): a wall in the building, its pixels lighter than the line.
+    g = np.full((120, 200), 254, np.uint8)
+    g[10:40, 10:190] = 209  # the fill
+    g[48:50, 10:190] = 150  # an outline drawn darker: the map is a drawing
+    g[70:100, 160:195] = 128  # a label box: the commonest unknown grey
+    rows = 60 + np.arange(0, 100) * math.tan(math.radians(30))
+    for col, row in zip(range(50, 150), rows, strict=True):
+        g[int(row), col] = g[int(row) + 1, col] = 201
+    m = drawing(g)
+    assert (m.state[10:40, 10:190] == FREE).all()
+    assert (m.state[g == 201] == UNKNOWN).all()
+    walls = drawn_walls(m)
+    line = g == 201
+    assert walls[line].mean() > 0.95
+    assert not walls[15:35, 15:185].any()  # the fill is floor
+
+
 def test_a_scan_s_grey_rims_and_unknown_are_no_drawn_walls() -> None:
     # A scan: black walls with a grey rim, unknown (205) around, a strip of unknown in free.
     g = np.full((120, 200), 205, np.uint8)
