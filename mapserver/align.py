@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from mapserver.diff import distance_to, near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+from mapserver.maps import FREE, OCCUPIED, PGM_UNKNOWN, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
 # nearest_wall_near's room for the points to move between requests, metres.
@@ -270,6 +270,8 @@ _LINE_MIN_LENGTH_M = 0.6
 _LINE_HALF_WALL_M = 0.08
 # Occupancies this close to the unknown grey are that grey (resampled or re-encoded maps).
 _UNKNOWN_BAND = 3
+# map_saver's unknown grey (PGM 205) as an occupancy 0..255.
+_SAVER_UNKNOWN = 255 - PGM_UNKNOWN
 
 
 @dataclass(frozen=True)
@@ -438,15 +440,19 @@ def _drawn_structure(
     if drawn is not None:
         # A drawing's walls are walls, for the differences as for the search: a wall drawn
         # and then seen gone is a removed one. Not its marks (a cross, a dot, a letter): the
-        # lines that run at least a while. And only lines drawn lighter than the unknown grey:
-        # darker ones are a scan's grey walls, blurred and noisy, which the search uses (they
-        # are darker than the unknown grey) but which no difference is measured against.
+        # lines that run at least a while. In a map whose unknown grey is map_saver's (a scan
+        # whose walls came out grey passes for a drawing), only lines drawn lighter than that
+        # grey: darker ones are its grey walls, blurred and noisy, which the search uses but
+        # which no difference is measured against. A drawing with an unknown grey of its own
+        # (label boxes) was never through map_saver: every line is ink.
         _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
         long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
-        long_lines &= (
-            _median_ink(m, np.asarray(labels, np.int32), len(stats)) < unknown_level - _UNKNOWN_BAND
-        )
+        if abs(unknown_level - _SAVER_UNKNOWN) <= _UNKNOWN_BAND:
+            long_lines &= (
+                _median_ink(m, np.asarray(labels, np.int32), len(stats))
+                < unknown_level - _UNKNOWN_BAND
+            )
         long_lines[0] = False
         walls |= long_lines[labels]
     # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls

@@ -186,6 +186,25 @@ def test_a_floor_plan_bundle_aligns_and_finds_a_new_box_and_a_wall_gone(
     assert inside(added, BOX, 0.3) and inside(removed, GONE, 0.3)
 
 
+def test_a_drawing_s_lines_darker_than_its_label_boxes_are_walls_for_the_differences() -> None:
+    # A drawing (paper, label boxes of its own grey, never through map_saver) at the RMF
+    # terminal's 0.082 m whose outline is drawn 2 px wide and darker than that grey: ink, a
+    # wall to see gone like its lighter lines (too thin for the core a grey wall keeps).
+    g = plan()
+    g[20, 20:100] = 119  # an outline darker than the label box (128) ...
+    g[21, 20:100] = 117  # ... two pixels wide
+    m = drawing(g, 0.0821)
+    assert not (m.state == OCCUPIED).any()
+    local = from_states(np.full((40, 40), FREE, np.uint8), 0.0821, (4.0, 1.0, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    top = 120 * 0.0821
+    (c, r), (c2, r2) = np.rint(
+        view.grid.to_pixel([[4.0, top - 20.5 * 0.0821], [4.0, top - 40.5 * 0.0821]])
+    ).astype(int)
+    assert view.state[r, c] == OCCUPIED  # the dark outline
+    assert view.state[r2, c2] == OCCUPIED  # the light one, as before
+
+
 def test_a_scan_s_grey_walls_serve_the_search_but_no_difference_is_measured_against_them() -> None:
     # A scan whose walls came out grey (darker than its unknown grey, few black cells): the
     # search uses them, but they are blurred and noisy, so they are not walls to see gone.
