@@ -39,7 +39,8 @@ class Piece:
     """One piece of the local map and its own alignment.
 
     ``mask`` is (H, W) bool on the local map's grid: the known cells of this piece. ``junction``
-    is the slam-frame point where the piece's route starts (where it meets the previous piece).
+    is the slam-frame point where the piece's route starts (where it meets the previous piece),
+    ``run`` the piece's stretch of the route (M, 2), slam frame (empty when not known).
     """
 
     index: int
@@ -49,6 +50,7 @@ class Piece:
     trusted: bool
     area_m2: float
     junction: tuple[float, float]
+    run: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True)
@@ -218,7 +220,7 @@ def align_pieces(
         walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
         if walls < min_walls:
             # Too few walls to align: the piece keeps its start, never scores.
-            piece = Piece(i, mask, prior, 0.0, False, area, junction)
+            piece = Piece(i, mask, prior, 0.0, False, area, junction, runs[i])
         else:
             sub = _sub_map(local, mask)
             starts = [prior] if from_piece or also_from is None else [prior, also_from]
@@ -239,7 +241,7 @@ def align_pieces(
                 key=lambda r: r.score,
             )
             t = result.nav2_from_slam
-            piece = Piece(i, mask, t, result.score, result.trusted, area, junction)
+            piece = Piece(i, mask, t, result.score, result.trusted, area, junction, runs[i])
             if result.trusted:
                 prior, from_piece = t, True
         if anchored is not None and i == len(runs) - 1 and not anchored(piece):
@@ -320,6 +322,55 @@ def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> fl
         if corners is not None:
             worst = max(worst, float(apart(piece.nav2_from_slam, transform, corners).max()))
     return worst
+
+
+def another_pass_explains(
+    local: OccupancyMap,
+    pieces: Pieces,
+    xy: FloatArray,
+    fits: Callable[[FloatArray], NDArray[np.bool_]],
+    *,
+    reach_m: float = 12.0,
+    min_gap_m: float = 0.5,
+    min_score: float = 0.6,
+    share: float = 0.8,
+) -> bool:
+    """Whether a difference at nav2 points ``xy`` (N, 2) is a fold: seen on another pass.
+
+    A route that comes back to a place after its heading drifted makes slam draw what it sees
+    the second time where the first pass's map lies, a metre or more off. The cells belong to
+    the piece of the first pass (the run nearest through free space), whose transform puts
+    the second pass's wall in open floor. Here the cells are taken back to the slam frame
+    through the trusted piece most of them belong to, then put through the transform of every
+    other aligned piece (``min_score``; not the piece's neighbours on the route, which meet it
+    within the chain's agreement) whose run came within ``reach_m`` of them and that puts them
+    ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
+    building (``fits``, per nav2 point), that pass saw them, and they are no change.
+    """
+    grid = Grid.of_map(local)
+    h, w = local.state.shape
+    best: tuple[int, Piece] | None = None
+    for p in pieces.trusted:
+        px = np.rint(grid.to_pixel(p.nav2_from_slam.inverse().apply(xy))).astype(np.int64)
+        ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        n = int(np.count_nonzero(p.mask[px[ok, 1], px[ok, 0]]))
+        if n and (best is None or n > best[0]):
+            best = (n, p)
+    if best is None:
+        return False
+    owner = best[1]
+    slam = owner.nav2_from_slam.inverse().apply(xy)
+    centre = slam.mean(axis=0, keepdims=True)
+    for q in pieces.pieces:
+        if q.score < min_score or abs(q.index - owner.index) < 2 or len(q.run) < 2:
+            continue
+        if float(np.hypot(*(q.run - centre).T).min()) > reach_m:
+            continue
+        if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
+            continue
+        if float(np.mean(fits(q.nav2_from_slam.apply(slam)))) >= share:
+            return True
+    return False
 
 
 def compose(
@@ -469,6 +520,7 @@ __all__ = [
     "Piece",
     "Pieces",
     "align_pieces",
+    "another_pass_explains",
     "apart",
     "compose",
     "departure",

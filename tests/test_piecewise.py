@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -507,3 +508,59 @@ def test_compared_whole_when_no_piece_is_trusted_reports_the_share_compared(
     a = process_bundle(_bent_bundle(tmp_path / "bent", 12.0), config).result["alignment"]
     assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] == 0
     assert 0.0 < a["trusted_share"] <= 1.0 and a["trusted_area_m2"] > 0
+
+
+def _fold_pieces(
+    other_index: int = 2,
+    other_shift_m: float = 1.0,
+    other_run_x: tuple[float, float] = (10.0, 20.0),
+    other_score: float = 0.9,
+) -> tuple[OccupancyMap, piecewise.Pieces]:
+    """A 20 m x 10 m local map at 0.1 m: the west half one trusted piece (identity, its run
+    along y = 5), and another aligned piece whose transform puts everything ``other_shift_m``
+    north, its run along y = 5 over ``other_run_x``."""
+    state = np.full((100, 200), FREE, np.uint8)
+    local = from_states(state, 0.1, (0.0, 0.0, 0.0))
+    west = np.zeros(state.shape, bool)
+    west[:, :100] = True
+    run = np.array([[0.0, 5.0], [10.0, 5.0]])
+    other_run = np.array([[other_run_x[0], 5.0], [other_run_x[1], 5.0]])
+    first = piecewise.Piece(0, west, Transform2D(0.0, 0.0, 0.0), 0.9, True, 50.0, (0.0, 5.0), run)
+    other = piecewise.Piece(
+        other_index,
+        ~west,
+        Transform2D(0.0, 0.0, other_shift_m),
+        other_score,
+        other_score >= 0.6,
+        50.0,
+        (other_run_x[0], 5.0),
+        other_run,
+    )
+    return local, piecewise.Pieces((first, other), 100.0)
+
+
+def _wall_at_y(y: float) -> Callable[[np.ndarray], np.ndarray]:
+    return lambda xy: np.abs(xy[:, 1] - y) <= 0.15
+
+
+def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None:
+    """The west piece's cells at (7.5..8.5, 5) are a wall the other pass saw: through that
+    pass's transform (1 m north) they lie on the building's wall at y = 6; through the
+    piece's own they stand in open floor."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    local, pieces = _fold_pieces()
+    assert piecewise.another_pass_explains(local, pieces, xy, _wall_at_y(6.0))
+    # No wall there after that move: a new obstacle.
+    assert not piecewise.another_pass_explains(local, pieces, xy, _wall_at_y(7.0))
+    # The other pass never came within a lidar's reach (its run 17 m away and more).
+    far = _fold_pieces(other_run_x=(25.0, 40.0))
+    assert not piecewise.another_pass_explains(*far, xy, _wall_at_y(6.0))
+    assert piecewise.another_pass_explains(*far, xy, _wall_at_y(6.0), reach_m=20.0)
+    # The piece next on the route meets this one within the chain's agreement: not a pass.
+    assert not piecewise.another_pass_explains(*_fold_pieces(other_index=1), xy, _wall_at_y(6.0))
+    # Two passes that put it only 0.3 m apart: the re-fit's business, not a fold.
+    near = _fold_pieces(other_shift_m=0.3)
+    assert not piecewise.another_pass_explains(*near, xy, _wall_at_y(5.3))
+    # A pass that did not align (under min_score) gives no transform to trust.
+    weak = _fold_pieces(other_score=0.4)
+    assert not piecewise.another_pass_explains(*weak, xy, _wall_at_y(6.0))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mapserver.grid import nonzero_cells
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import explained_by_refit, floor_seen_share, ghost_of_wall
 
 RES = 0.05
@@ -222,7 +222,8 @@ def _column_seen_through_a_band(*, in_pieces: bool) -> list[object]:
         warnings=(),
     )
     gone = Difference("removed", (2.75, 3.25), (2.6, 3.0, 2.9, 3.5), 0.15, 60, cells(seen))
-    return list(pipeline._refit([gone], aligned, np.zeros(glob.shape, bool), Config()))
+    slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
+    return list(pipeline._refit([gone], aligned, np.zeros(glob.shape, bool), Config(), slam_map))
 
 
 def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() -> None:
