@@ -84,9 +84,12 @@ class DiffConfig(_Frozen):
     min_area_m2: float = Field(0.0, ge=0)
     """An absolute floor on a difference's area, on top of ``min_local_cells``."""
     drifted_min_area_m2: float = Field(0.04, ge=0)
-    """The floor after a drifting session (a drift correction of 0.2 m or more, or aligned in
-    pieces): where the local map is known to sit off by decimetres, a speck smaller than this
-    (a 0.2 m square) is more likely the scatter of a wall seen twice than a change."""
+    """The floor on an added obstacle after a drifting session (a drift correction of 0.2 m or
+    more, or aligned in pieces): where the local map is known to sit off by decimetres, a speck
+    smaller than this (a 0.2 m square) is more likely the scatter of a wall seen twice than a
+    change. Not on a removed one: it must show its removal evidence (cells seen free deep
+    inside the structure, or through it) whatever its size, and a small piece of wall gone is
+    a common change."""
     max_misfit_tolerance_m: float = Field(0.5, ge=0)
     """Where local walls still sit off the global ones (drift not fully taken out, a wall seen
     doubled on a revisit), the tolerances grow with that misfit: the added one up to this, the

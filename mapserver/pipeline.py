@@ -457,7 +457,8 @@ def _cluster_masks(
     drifted: bool = False,
 ) -> list[cluster_stage.Difference]:
     """The obstacles of the difference masks, largest first. ``drifted``: the session drifted
-    (see ``_REFIT_DRIFT_M``), so the floor on their area is ``drifted_min_area_m2``."""
+    (see ``_REFIT_DRIFT_M``), so the floor on an added one's area is ``drifted_min_area_m2``
+    (a removed one has its evidence to show, and the re-fit's checks after)."""
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
     floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
@@ -471,7 +472,7 @@ def _cluster_masks(
             removal_evidence,
         ),
     ):
-        min_area = max(floor_m2, cells * cell_m2)
+        min_area = max(floor_m2 if kind == "added" else d.min_area_m2, cells * cell_m2)
         found += cluster_stage.cluster_mask(
             mask,
             grid,

@@ -14,6 +14,7 @@ import pytest
 import yaml
 from worlds import changed, office
 
+from mapserver import diff as diff_stage
 from mapserver import piecewise, pipeline
 from mapserver.bundle import sha256_file
 from mapserver.config import Config
@@ -564,3 +565,24 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     # A pass that did not align (under min_score) gives no transform to trust.
     weak = _fold_pieces(other_score=0.4)
     assert not piecewise.another_pass_explains(*weak, xy, _wall_at_y(6.0))
+
+
+def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_reported() -> None:
+    """The drifted floor (0.04 m2: 16 cells at 0.05 m) is on added specks only: a removed piece
+    of 12 cells, every one seen through, is reported after a drifting session; an added one of
+    the same size is not."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    piece = np.zeros((100, 100), bool)
+    piece[40:43, 40:44] = True  # 12 cells, 0.03 m2
+    config = Config()
+    assert config.pipeline.diff.drifted_min_area_m2 > 12 * 0.05**2
+    for kind in ("added", "removed"):
+        masks = diff_stage.DiffMasks(
+            added=piece if kind == "added" else np.zeros_like(piece),
+            removed=piece if kind == "removed" else np.zeros_like(piece),
+        )
+        found = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=True)
+        assert [d.kind for d in found] == (["removed"] if kind == "removed" else [])
+        still = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=False)
+        assert [d.kind for d in still] == [kind]
