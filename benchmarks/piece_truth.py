@@ -89,24 +89,24 @@ def _bundles(set_dir: Path, wanted: list[str]) -> list[tuple[Path, Path, dict[st
     return out
 
 
-def _pieces_of(
-    bundle_dir: Path, config: Config
-) -> tuple[piecewise.Pieces | None, list[FloatArray]]:
-    """The pieces the pipeline aligned ``bundle_dir`` in (its last call), and their runs."""
-    calls: list[tuple[piecewise.Pieces | None, list[FloatArray]]] = []
+def _pieces_of(bundle_dir: Path, config: Config) -> piecewise.Pieces | None:
+    """The pieces the pipeline compared ``bundle_dir`` in (its last alignment in pieces), None
+    when it compared the map whole (pieces tried and put aside, or never tried)."""
+    calls: list[piecewise.Pieces | None] = []
     align_pieces = piecewise.align_pieces
 
     def spy(*a: Any, **k: Any) -> piecewise.Pieces | None:
         out = align_pieces(*a, **k)
-        calls.append((out, piecewise.route_pieces(a[2], piece_m=k.get("piece_m", 20.0))))
+        calls.append(out)
         return out
 
     piecewise.align_pieces = spy
     try:
-        pipeline.process_bundle(bundle_dir, config)
+        result = pipeline.process_bundle(bundle_dir, config).result
     finally:
         piecewise.align_pieces = align_pieces
-    return calls[-1] if calls else (None, [])
+    in_pieces = "pieces" in result["alignment"]
+    return calls[-1] if calls and in_pieces else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,12 +132,12 @@ def main(argv: list[str] | None = None) -> int:
             params.get("drift_yaw_deg_per_m", 0.0),
             params.get("drift_scale", 0.0),
         )
-        pieces, runs = _pieces_of(bundle_dir, config)
-        print(f"{bundle_dir.name}: end match {miss:.2f} m", "" if pieces else "(not in pieces)")
+        pieces = _pieces_of(bundle_dir, config)
+        print(f"{bundle_dir.name}: end match {miss:.2f} m", "" if pieces else "(compared whole)")
         if pieces is None:
             continue
         for piece in pieces.pieces:
-            at = [int(np.argmin(np.hypot(*(est[:, :2] - xy).T))) for xy in runs[piece.index]]
+            at = [int(np.argmin(np.hypot(*(est[:, :2] - xy).T))) for xy in piece.run]
             error = np.hypot(*(piece.nav2_from_slam.apply(est[at, :2]) - route[at]).T)
             print(
                 f"  piece {piece.index:2d} score {piece.score:.3f} "

@@ -198,15 +198,16 @@ def _median_ink(m: OccupancyMap, labels: NDArray[np.int32], n: int) -> NDArray[n
     return out
 
 
-def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], bool]:
-    """The occupancies a drawn line may have (darker than anything read as free, not the
-    unknown grey), and whether more cells that are not black are clearly darker than free
-    than cells are black (a drawing, not a scan).
+def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], NDArray[np.bool_], bool]:
+    """The occupancies a drawn line's pixels may have (darker than anything read as free, not
+    the unknown grey), those clearly darker than free, and whether more cells that are not
+    black have the clear ones than cells are black (a drawing, not a scan).
 
     A line's own pixels need only be darker than what the thresholds read as free: a line
     drawn thin and slanted spreads its ink over two pixels, each lighter than the line. What
     makes it a line is its contrast with what lies beside it (the top-hat); the map's
-    thresholds say what is not floor."""
+    thresholds say what is not floor. Whether the map is a drawing at all is told by the clear
+    ones only, so that a scan's faint greys do not make it one."""
     unknown_level = counts.unknown_level()
     levels = np.arange(256)
     not_unknown = np.abs(levels - unknown_level) > _UNKNOWN_BAND
@@ -214,7 +215,7 @@ def _grey_levels(counts: _Levels) -> tuple[NDArray[np.bool_], bool]:
     grey = not_unknown & (levels > min(free_top, 254))
     clearly = not_unknown & (levels > min(free_top + _LINE_CONTRAST // 3, 254))
     n_black = int(counts.occupied.sum())
-    return grey, int((counts.free + counts.unknown)[clearly].sum()) > n_black
+    return grey, clearly, int((counts.free + counts.unknown)[clearly].sum()) > n_black
 
 
 def drawn_walls(m: OccupancyMap) -> NDArray[np.bool_]:
@@ -238,10 +239,10 @@ def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
     occ, state = m.occupancy, m.state
     # A scan has few cells of a line's grey levels and a trinary map none: a look at every
     # fourth row and column tells, before anything is counted exactly.
-    if not _grey_levels(_Levels.of(occ[::4, ::4], state[::4, ::4]))[1]:
+    if not _grey_levels(_Levels.of(occ[::4, ::4], state[::4, ::4]))[2]:
         return None
     counts = _Levels.of(occ, state)
-    grey_levels, enough = _grey_levels(counts)
+    grey_levels, clearly, enough = _grey_levels(counts)
     if not enough:
         return None
     n_black = int(counts.occupied.sum())
@@ -250,7 +251,8 @@ def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
     hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, _LINE_KERNEL)
     lines = (hat >= _LINE_CONTRAST) & grey_levels[occ] & (m.state != OCCUPIED)
     lines &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
-    if np.count_nonzero(lines) <= n_black:
+    # A drawing has more clear line pixels than black cells (a scan, its walls black, fewer).
+    if np.count_nonzero(lines & clearly[occ]) <= n_black:
         return None
     grow = round(_LINE_HALF_WALL_M / m.resolution)
     if grow > 0:
@@ -412,7 +414,9 @@ def make_view(
             (crop_grid.x0, crop_grid.y0, 0.0),
         )
         same = source.state == crop.state  # not where a published change differs
-    structure_u8, walls = _drawn_structure(source, same)
+    whole = global_map if source is crop else drawing
+    assert whole is not None
+    structure_u8, walls = _drawn_structure(source, same, whole=whole)
     if source is not crop:
         structure_u8 |= _structure(crop, None).astype(np.uint8)
     state = resample(crop.state, crop_grid, grid)
@@ -424,11 +428,23 @@ def make_view(
     return GlobalView(grid, state, structure, wall_reach_m, raw)
 
 
+def _saver_unknown(m: OccupancyMap) -> bool:
+    """Whether the unknown grey of the whole map ``m`` is map_saver's (PGM 205), read on every
+    fourth row and column: a scan (or a map written by map_saver's rules), not a drawing with
+    an unknown grey of its own. Asked of the whole map, not of a crop, which may hold none of
+    its unknown but the grey walls themselves."""
+    occ = np.ascontiguousarray(m.occupancy[::4, ::4])
+    unknown = np.ascontiguousarray(m.state[::4, ::4]) == UNKNOWN
+    counts = _histogram_where(occ, unknown)
+    return bool(counts.any()) and abs(int(np.argmax(counts)) - _SAVER_UNKNOWN) <= _UNKNOWN_BAND
+
+
 def _drawn_structure(
-    m: OccupancyMap, same: NDArray[np.bool_] | None
+    m: OccupancyMap, same: NDArray[np.bool_] | None, *, whole: OccupancyMap
 ) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
-    """The alignment's walls of ``m`` (uint8 0/1), and the cells its drawing makes walls for
-    the differences (None if none), both only where ``same`` (when given)."""
+    """The alignment's walls of ``m`` (uint8 0/1, a crop of ``whole``), and the cells its
+    drawing makes walls for the differences (None if none), both only where ``same`` (when
+    given)."""
     drawn = _drawn(m)
     if drawn is not None and same is not None:
         drawn &= same
@@ -448,10 +464,10 @@ def _drawn_structure(
         _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
         long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
-        if abs(unknown_level - _SAVER_UNKNOWN) <= _UNKNOWN_BAND:
+        if _saver_unknown(whole):
             long_lines &= (
                 _median_ink(m, np.asarray(labels, np.int32), len(stats))
-                < unknown_level - _UNKNOWN_BAND
+                < _SAVER_UNKNOWN - _UNKNOWN_BAND
             )
         long_lines[0] = False
         walls |= long_lines[labels]

@@ -40,7 +40,7 @@ class Piece:
 
     ``mask`` is (H, W) bool on the local map's grid: the known cells of this piece. ``junction``
     is the slam-frame point where the piece's route starts (where it meets the previous piece),
-    ``run`` the piece's stretch of the route (M, 2), slam frame (empty when not known).
+    ``run`` the piece's stretch of the route (M, 2), slam frame.
     """
 
     index: int
@@ -50,7 +50,7 @@ class Piece:
     trusted: bool
     area_m2: float
     junction: tuple[float, float]
-    run: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+    run: FloatArray
 
 
 @dataclass(frozen=True)
@@ -342,7 +342,8 @@ def another_pass_explains(
     the piece of the first pass (the run nearest through free space), whose transform puts
     the second pass's wall in open floor. Here the cells are taken back to the slam frame
     through the trusted piece most of them belong to, then put through the transform of every
-    other aligned piece (``min_score``; not the piece's neighbours on the route, which meet it
+    other aligned piece (``min_score``, trusted or left out of the chain: a chain break leaves
+    out pieces that are mostly right; not the piece's neighbours on the route, which meet it
     within the chain's agreement) whose run came within ``reach_m`` of them and that puts them
     ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
     building (``fits``, per nav2 point), that pass saw them, and they are no change.

@@ -506,18 +506,22 @@ _REPORT_WARP_M = 0.1
 _FLOOR_SEEN_SHARE = 0.95
 # Folds in general: what one pass saw, drawn by slam where another pass's piece lies, goes
 # through that piece's transform: a wall lands in open floor (a false "added" obstacle), open
-# floor on a block (a false "removed" one). It is a fold when the transform of a pass (a piece
-# not next to it on the route) whose run came within a lidar's reach of it (12 m, the
-# generated sessions' and many indoor units' range) and that puts it at least _PASS_GAP_M
-# elsewhere (0.5 m: the pieces' own agreement; nearer, the re-fit above looks) puts 80 % of it
-# where the building has it: an added one within twice the differences' tolerance of a global
-# wall (each piece carries its own drift correction, this check does not), a removed one on
-# free floor off every wall. Which pass saw a cell the fused map does not say: a wall really
-# gone where two passes disagree is lost with the folds (ambiguous evidence, not reported).
-# Over the six drift sets: added only, false positives 79 -> 43 for 8 of the 436 changes
-# found; removed too, 43 -> 17 for 12 more (F1 up in five sets of six, 8642 down 0.010).
+# floor on a block (a false "removed" one). It is a fold when the transform of a pass (an
+# aligned piece not next to it on the route, trusted or left out: a chain break leaves out
+# pieces that are mostly right, and the passes that fold onto the trusted ones are often
+# theirs) whose run came within a lidar's reach of it (12 m, the generated sessions' and many
+# indoor units' range) and that puts it at least _PASS_GAP_M elsewhere (0.5 m: the pieces' own
+# agreement; nearer, the re-fit above looks) puts _PASS_SHARE of it where the building has it:
+# an added one within twice the differences' tolerance of a global wall (each piece carries
+# its own drift correction, this check does not), a removed one on free floor off every wall.
+# Which pass saw a cell the fused map does not say: a wall really gone where two passes
+# disagree is lost with the folds (ambiguous evidence, not reported). Over the six drift sets,
+# added only: false positives 79 -> 43 for 8 of the 436 changes found; removed too: 43 -> 17
+# for 12 more (F1 up in five sets, 8642 down 0.010). Trusted pieces only: 14 false positives
+# more, F1 down 0.006-0.023 in three sets.
 _PASS_REACH_M = 12.0
 _PASS_GAP_M = 0.5
+_PASS_SHARE = 0.8
 
 
 def _rigid_of_warp(
@@ -605,7 +609,7 @@ def _seen_on_another_pass(
     """Whether another pass of a route aligned in pieces saw ``diff``'s cells as no change
     (``_PASS_REACH_M``): an added one's on a global wall (``near_wall()``), a removed one's on
     the open floor (free, off every wall)."""
-    if aligned.pieces is None or diff.cells is None:
+    if aligned.pieces is None or diff.cells is None:  # never: _refit asks only of clusters
         return False
     grid, state = aligned.view.grid, aligned.view.state
 
@@ -627,6 +631,7 @@ def _seen_on_another_pass(
         reach_m=_PASS_REACH_M,
         min_gap_m=_PASS_GAP_M,
         min_score=config.pipeline.align.min_score,
+        share=_PASS_SHARE,
     )
 
 
@@ -1136,6 +1141,9 @@ def _judged_on_current(
     )
     judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
     if drifted and judged:
+        # The re-fit's checks read the bundle's own version of the map (the view), not the
+        # current one: where a published change differs, a difference's explanation may lean
+        # on what the robot's copy showed.
         judged = _refit(judged, aligned, fleet_masks.added, config, local)
     return judged
 

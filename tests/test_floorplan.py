@@ -205,6 +205,23 @@ def test_a_drawing_s_lines_darker_than_its_label_boxes_are_walls_for_the_differe
     assert view.state[r2, c2] == OCCUPIED  # the light one, as before
 
 
+def test_a_scan_is_told_by_its_whole_map_not_by_a_crop_without_its_unknown_grey() -> None:
+    # A scan whose grey walls (darker than map_saver's 205, noisy, few black cells) pass for a
+    # drawing, its unknown all east of x = 20 m: a view of its west part holds none of that
+    # grey, and its commonest unknown grey there is the walls' own. Still no wall to see gone.
+    rng = np.random.default_rng(0)
+    g = np.full((120, 600), 254, np.uint8)
+    g[:, 400:] = 205
+    for row in (40, 80):
+        g[row, 10:190] = rng.integers(110, 170, 180)
+    m = drawing(g)
+    local = from_states(np.full((40, 40), FREE, np.uint8), RES, (4.0, 1.0, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    assert view.grid.x0 + view.grid.width * RES < 400 * RES  # the crop: none of the 205
+    assert view.structure.any()  # the search has the grey walls
+    assert not (view.state == OCCUPIED).any()  # the differences do not
+
+
 def test_a_scan_s_grey_walls_serve_the_search_but_no_difference_is_measured_against_them() -> None:
     # A scan whose walls came out grey (darker than its unknown grey, few black cells): the
     # search uses them, but they are blurred and noisy, so they are not walls to see gone.

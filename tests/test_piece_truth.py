@@ -54,10 +54,13 @@ def test_undrift_inverts_the_simulators_drift(pt: ModuleType) -> None:
     assert np.hypot(*(anchor.apply(est[-1:, :2])[0] - true[-1, :2])) > 0.5
 
 
-def test_true_route_picks_the_drifts_signs_from_the_prior(pt: ModuleType) -> None:
+@pytest.mark.parametrize(("yaw_sign", "scale_sign"), [(1, 1), (1, -1), (-1, 1), (-1, -1)])
+def test_true_route_picks_the_drifts_signs_from_the_prior(
+    pt: ModuleType, yaw_sign: int, scale_sign: int
+) -> None:
     true = square_route()
     anchor = Transform2D(-1.2, 3.0, -2.0)
-    est = _drifted(true, anchor, math.radians(-0.08), 1.0 - 0.004)
+    est = _drifted(true, anchor, yaw_sign * math.radians(0.08), 1.0 + scale_sign * 0.004)
     truth = fit_rigid(est[:, :2], true[:, :2])  # what a set's truth file holds
     prior = (true[-1, 0] + 0.03, true[-1, 1] - 0.04)  # AMCL noise
     route, miss = pt.true_route(est, truth, prior, 0.08, 0.004)

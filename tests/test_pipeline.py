@@ -13,9 +13,13 @@ import pytest
 import yaml
 from worlds import changed, cut_local, office, offset, write_bundle
 
+from mapserver import diff as diff_stage
+from mapserver import pipeline
 from mapserver.config import Config, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
+from mapserver.grid import Grid
+from mapserver.maps import FREE, from_states
 from mapserver.pipeline import process_bundle
 
 TRUE = Transform2D(-0.9, 3.0, 8.0)
@@ -256,3 +260,24 @@ def test_a_stage_run_inside_another_counts_for_itself_only(monkeypatch: pytest.M
         pipeline.on_stage(None)
     assert stages.timings_ms == {"align": 150.0, "pieces": 300.0}
     assert heard == ["align", "pieces", "align"]
+
+
+def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_reported() -> None:
+    """The drifted floor (0.04 m2: 16 cells at 0.05 m) is on added specks only: a removed piece
+    of 12 cells, every one seen through, is reported after a drifting session; an added one of
+    the same size is not."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    piece = np.zeros((100, 100), bool)
+    piece[40:43, 40:44] = True  # 12 cells, 0.03 m2
+    config = Config()
+    assert config.pipeline.diff.drifted_min_area_m2 > 12 * 0.05**2
+    for kind in ("added", "removed"):
+        masks = diff_stage.DiffMasks(
+            added=piece if kind == "added" else np.zeros_like(piece),
+            removed=piece if kind == "removed" else np.zeros_like(piece),
+        )
+        found = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=True)
+        assert [d.kind for d in found] == (["removed"] if kind == "removed" else [])
+        still = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=False)
+        assert [d.kind for d in still] == [kind]
