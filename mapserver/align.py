@@ -484,15 +484,6 @@ def _drawn_structure(
 # --- scoring ---------------------------------------------------------------------------------
 
 
-def _lookup(image: NDArray[np.generic], grid: Grid, xy: FloatArray, fill: float) -> FloatArray:
-    """Nearest-pixel values of ``image`` at world points (fill outside)."""
-    px = np.rint(grid.to_pixel(xy)).astype(np.int64)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
-    out = np.full(len(xy), fill, dtype=float)
-    out[inside] = image[px[inside, 1], px[inside, 0]]
-    return out
-
-
 def agreement(
     points_slam: FloatArray,
     nav2_from_slam: Transform2D,
@@ -503,7 +494,7 @@ def agreement(
     of a global wall, :meth:`GlobalView.near_walls`)."""
     if len(points_slam) == 0:
         return 0.0
-    return float(np.mean(_lookup(near_walls, grid, nav2_from_slam.apply(points_slam), fill=False)))
+    return float(np.mean(grid.sample(near_walls, nav2_from_slam.apply(points_slam), False)))
 
 
 def consistency(

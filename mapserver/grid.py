@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -16,6 +17,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from mapserver.geometry import Transform2D
 from mapserver.maps import UNKNOWN, OccupancyMap
+
+ScalarT = TypeVar("ScalarT", bound=np.generic)
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,16 @@ class Grid:
         x = self.x0 + (p[:, 0] + 0.5) * self.resolution
         y = self.y0 + (self.height - p[:, 1] - 0.5) * self.resolution
         return np.stack([x, y], axis=1)
+
+    def sample(self, image: NDArray[ScalarT], xy: ArrayLike, fill: Any) -> NDArray[ScalarT]:
+        """Nearest-pixel values of ``image`` (H, W) on this grid at world points ``xy`` (N, 2),
+        ``fill`` where a point falls off the grid; (N,) of ``image``'s dtype."""
+        px = np.rint(self.to_pixel(xy)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < self.width)
+        inside &= (px[:, 1] >= 0) & (px[:, 1] < self.height)
+        out = np.full(len(px), fill, dtype=image.dtype)
+        out[inside] = image[px[inside, 1], px[inside, 0]]
+        return out
 
     def crop(self, box: tuple[int, int, int, int]) -> Grid:
         """The grid of the cells ``box`` = (row0, row1, col0, col1) of this one: the same

@@ -349,18 +349,15 @@ def another_pass_explains(
     building (``fits``, per nav2 point), that pass saw them, and they are no change.
     """
     grid = Grid.of_map(local)
-    h, w = local.state.shape
-    best: tuple[int, Piece] | None = None
+    best: tuple[int, Piece, FloatArray] | None = None
     for p in pieces.trusted:
-        px = np.rint(grid.to_pixel(p.nav2_from_slam.inverse().apply(xy))).astype(np.int64)
-        ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        n = int(np.count_nonzero(p.mask[px[ok, 1], px[ok, 0]]))
+        at = p.nav2_from_slam.inverse().apply(xy)
+        n = int(np.count_nonzero(grid.sample(p.mask, at, False)))
         if n and (best is None or n > best[0]):
-            best = (n, p)
+            best = (n, p, at)
     if best is None:
         return False
-    owner = best[1]
-    slam = owner.nav2_from_slam.inverse().apply(xy)
+    _, owner, slam = best
     centre = slam.mean(axis=0, keepdims=True)
     for q in pieces.pieces:
         if q.score < min_score or abs(q.index - owner.index) < 2 or len(q.run) < 2:

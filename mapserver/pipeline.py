@@ -609,19 +609,16 @@ def _seen_on_another_pass(
     """Whether another pass of a route aligned in pieces saw ``diff``'s cells as no change
     (``_PASS_REACH_M``): an added one's on a global wall (``near_wall()``), a removed one's on
     the open floor (free, off every wall)."""
-    if aligned.pieces is None or diff.cells is None:  # never: _refit asks only of clusters
+    assert diff.cells is not None
+    if aligned.pieces is None:
         return False
     grid, state = aligned.view.grid, aligned.view.state
 
     def fits(xy: np.ndarray) -> np.ndarray:
-        px = np.rint(grid.to_pixel(xy)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < grid.width)
-        inside &= (px[:, 1] >= 0) & (px[:, 1] < grid.height)
-        rows, cols = px[inside, 1], px[inside, 0]
-        out = np.zeros(len(xy), bool)
-        on_wall = near_wall()[rows, cols]
-        out[inside] = on_wall if diff.kind == "added" else (state[rows, cols] == FREE) & ~on_wall
-        return out
+        on_wall = grid.sample(near_wall(), xy, False)
+        if diff.kind == "added":
+            return on_wall
+        return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)
 
     return piecewise.another_pass_explains(
         local,
