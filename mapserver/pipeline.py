@@ -461,18 +461,19 @@ def _cluster_masks(
     (a removed one has its evidence to show, and the re-fit's checks after)."""
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
-    floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
+    added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
     found = []
-    for kind, mask, cells, evidence in (
-        ("added", masks.added, d.min_local_cells, None),
+    for kind, mask, cells, floor_m2, evidence in (
+        ("added", masks.added, d.min_local_cells, added_floor_m2, None),
         (
             "removed",
             masks.removed,
             max(d.min_local_cells, d.min_removed_cells),
+            d.min_area_m2,
             removal_evidence,
         ),
     ):
-        min_area = max(floor_m2 if kind == "added" else d.min_area_m2, cells * cell_m2)
+        min_area = max(floor_m2, cells * cell_m2)
         found += cluster_stage.cluster_mask(
             mask,
             grid,
@@ -759,8 +760,10 @@ def _align(
             # search, if it ran after all, would search it too).
             log.info("%s: a piece landed near the narrow view's edge", stages.bundle_id)
             found = stages.run("pieces", partial(aligned_on, view_for(wide_rad)))
-        pieces.extend([found] if found is not None else [])
-        return found is not None
+        if found is None:
+            return False
+        pieces.append(found)
+        return True
 
     # The view for the narrow search first (most priors are within a few degrees): the
     # wide one, several times larger, is built only when the wide search (or a piece near the
