@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
-import sys
 from collections.abc import Iterator
 from dataclasses import replace
 from datetime import datetime
@@ -15,23 +13,16 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from bench_support import benchmark_module
 
 from mapserver.bundle import check_bundle_files, read_manifest
 from mapserver.maps import OCCUPIED, load_map
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
 def mh() -> Iterator[ModuleType]:
-    path = BENCHMARKS / "make_histories.py"
-    spec = importlib.util.spec_from_file_location("make_histories", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["make_histories"] = module
-    spec.loader.exec_module(module)
-    yield module
-    del sys.modules["make_histories"]
+    with benchmark_module("make_histories") as module:
+        yield module
 
 
 def tiny_plan(mh: ModuleType) -> Any:

@@ -3,32 +3,23 @@ trajectory by running the simulator's drift model backwards."""
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import math
-import sys
 from collections.abc import Iterator
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from bench_support import benchmark_module
 
 from mapserver.geometry import Transform2D, fit_rigid
 from mapserver.synth.session import _drifted
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
 def pt() -> Iterator[ModuleType]:
-    spec = importlib.util.spec_from_file_location("piece_truth", BENCHMARKS / "piece_truth.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["piece_truth"] = module
-    spec.loader.exec_module(module)
-    yield module
-    del sys.modules["piece_truth"]
+    with benchmark_module("piece_truth") as module:
+        yield module
 
 
 def square_route() -> np.ndarray:

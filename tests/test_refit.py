@@ -4,6 +4,7 @@ after drift, not a change (mapserver/refit.py)."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -11,6 +12,11 @@ import pytest
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import explained_by_refit, floor_seen_share, ghost_of_wall
+
+if TYPE_CHECKING:
+    from mapserver.cluster import Difference
+    from mapserver.maps import OccupancyMap
+    from mapserver.piecewise import Pieces
 
 RES = 0.05
 KW = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
@@ -192,38 +198,56 @@ def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
     assert floor_seen_share(cells(piece), glob, local, resolution=RES) == 1.0
 
 
-def _column_seen_through_a_band(*, in_pieces: bool) -> list[object]:
+def _column_seen_through_a_band(*, in_pieces: bool) -> list[Difference]:
     """The pipeline's re-fit of a removed column seen free through a band of rays, the floor
     on either side of the band in shadow (unknown), after a drift correction of 0.3 m; the
     differences it keeps."""
-    from mapserver import pipeline
-    from mapserver.align import GlobalView
     from mapserver.cluster import Difference
-    from mapserver.config import Config
-    from mapserver.geometry import Transform2D
-    from mapserver.grid import Grid
 
     glob, column = _column_hall()
     local = np.full(glob.shape, UNKNOWN, np.uint8)
     local[:, 52:58] = FREE  # the band the robot looked along, 0.3 m wide, through the column
     seen = column & (local == FREE)
-    grid = Grid(0.0, 0.0, RES, glob.shape[1], glob.shape[0])
-    view = GlobalView(grid, glob, glob == OCCUPIED)
+    gone = Difference("removed", (2.75, 3.25), (2.6, 3.0, 2.9, 3.5), 0.15, 60, cells(seen))
+    slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
+    return _refit(gone, glob, local, RES, slam_map, None, in_pieces=in_pieces)
+
+
+def _refit(
+    found: Difference,
+    glob: np.ndarray,
+    local_state: np.ndarray,
+    res: float,
+    slam_map: OccupancyMap,
+    pieces: Pieces | None,
+    *,
+    in_pieces: bool,
+) -> list[Difference]:
+    """The pipeline's re-fit of difference ``found`` of a local map aligned onto the global
+    states ``glob`` (local states ``local_state`` on the same grid at ``res``, its origin at
+    0, 0) after a drift correction of 0.3 m, in ``pieces`` when ``in_pieces``; the differences
+    it keeps."""
+    from mapserver import pipeline
+    from mapserver.align import GlobalView
+    from mapserver.config import Config
+    from mapserver.geometry import Transform2D
+    from mapserver.grid import Grid
+
+    view = GlobalView(Grid(0.0, 0.0, res, glob.shape[1], glob.shape[0]), glob, glob == OCCUPIED)
     aligned = pipeline._Aligned(
         view=view,
-        local_state=local,
+        local_state=local_state,
         transform=Transform2D(0.0, 0.0, 0.0),
         drift_m=0.3,
-        pieces=None,
+        pieces=pieces,
         in_pieces=in_pieces,
         left_out=None,
         compared=True,
         kept=1.0,
         warnings=(),
     )
-    gone = Difference("removed", (2.75, 3.25), (2.6, 3.0, 2.9, 3.5), 0.15, 60, cells(seen))
-    slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
-    return list(pipeline._refit([gone], aligned, np.zeros(glob.shape, bool), Config(), slam_map))
+    no_added = np.zeros(glob.shape, bool)
+    return list(pipeline._refit([found], aligned, no_added, Config(), slam_map))
 
 
 def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() -> None:
@@ -233,18 +257,15 @@ def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() 
     assert _column_seen_through_a_band(in_pieces=True) == []
 
 
-def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[object]:
+def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
     for the added kind, none for the removed), of the west piece (identity). The other piece
     (third on the route) puts everything 1 m north; its run lies along y = 5 m over
     ``other_run_x``."""
-    from mapserver import piecewise, pipeline
-    from mapserver.align import GlobalView
+    from mapserver import piecewise
     from mapserver.cluster import Difference
-    from mapserver.config import Config
     from mapserver.geometry import Transform2D
-    from mapserver.grid import Grid
 
     res = 0.1
     glob = np.full((100, 200), FREE, np.uint8)  # row r: y = 10 - (r + 0.5) * 0.1
@@ -252,8 +273,6 @@ def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[object
     if kind == "added":
         glob[48:52, 70:90] = FREE
         glob[39:41, :] = OCCUPIED  # the wall, y 5.9..6.1
-    grid = Grid(0.0, 0.0, res, 200, 100)
-    view = GlobalView(grid, glob, glob == OCCUPIED)
     local = from_states(np.full((100, 200), FREE, np.uint8), res, (0.0, 0.0, 0.0))
     west = np.zeros((100, 200), bool)
     west[:, :100] = True
@@ -285,22 +304,10 @@ def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[object
     state = np.full(glob.shape, FREE, np.uint8)
     if kind == "added":
         state[49:51, 75:85] = OCCUPIED
-    aligned = pipeline._Aligned(
-        view=view,
-        local_state=state,
-        transform=Transform2D(0.0, 0.0, 0.0),
-        drift_m=0.3,
-        pieces=pieces,
-        in_pieces=True,
-        left_out=None,
-        compared=True,
-        kept=1.0,
-        warnings=(),
-    )
     where = np.zeros(glob.shape, bool)
     where[49:51, 75:85] = True
     found = Difference(kind, (8.0, 5.0), (7.5, 4.9, 8.5, 5.1), 0.2, 20, cells(where))
-    return list(pipeline._refit([found], aligned, np.zeros(glob.shape, bool), Config(), local))
+    return _refit(found, glob, state, res, local, pieces, in_pieces=True)
 
 
 @pytest.mark.parametrize("kind", ["added", "removed"])

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import math
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -15,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from bench_support import benchmark_module
 
 from mapserver.errors import ProcessingError
 from mapserver.geometry import Transform2D
@@ -415,14 +414,8 @@ def test_totals_are_micro_averages_over_counts():
 
 @pytest.fixture(scope="module")
 def bench() -> Iterator[ModuleType]:
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_public.py"
-    spec = importlib.util.spec_from_file_location("bench_public", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_public"] = module
-    spec.loader.exec_module(module)
-    yield module
-    del sys.modules["bench_public"]
+    with benchmark_module("bench_public") as module:
+        yield module
 
 
 @pytest.fixture
