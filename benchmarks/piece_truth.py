@@ -29,11 +29,14 @@ from typing import Any
 
 import numpy as np
 import yaml
+from bench_public import Case, find_cases  # benchmarks/ is on sys.path when a script in it runs
 from numpy.typing import NDArray
 
 from mapserver import piecewise, pipeline
+from mapserver.bundle import read_manifest
 from mapserver.config import Config, load_config
 from mapserver.geometry import Transform2D, fit_rigid, wrap_angle
+from mapserver.scoring import parse_truth
 
 FloatArray = NDArray[np.float64]
 
@@ -79,14 +82,10 @@ def true_route(
     return best[1], best[0]
 
 
-def _bundles(set_dir: Path, wanted: list[str]) -> list[tuple[Path, Path, dict[str, Any]]]:
-    out = []
-    for case in sorted(p for p in set_dir.iterdir() if (p / "scenario.yaml").is_file()):
-        scenario = yaml.safe_load((case / "scenario.yaml").read_text())
-        for bundle in sorted((case / "bundles").iterdir()):
-            if not wanted or any(w in bundle.name for w in wanted):
-                out.append((bundle, case / "truth" / f"{bundle.name}.yaml", scenario))
-    return out
+def _scenario_params(case: Case) -> dict[str, Any]:
+    """The generator's parameters of the scenario ``case`` belongs to (``scenario.yaml``)."""
+    doc = yaml.safe_load((case.bundle_dir.parent.parent / "scenario.yaml").read_text())
+    return dict(doc["params"])
 
 
 def _pieces_of(bundle_dir: Path, config: Config) -> piecewise.Pieces | None:
@@ -115,20 +114,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bundles", nargs="*", help="only bundles whose id holds one of these")
     args = parser.parse_args(argv)
     config = load_config(None)
-    for bundle_dir, truth_path, scenario in _bundles(args.set, args.bundles):
-        params = scenario["params"]
+    for case in find_cases(args.set):
+        if args.bundles and not any(b in case.bundle_id for b in args.bundles):
+            continue
+        bundle_dir, params = case.bundle_dir, _scenario_params(case)
         if params.get("drift_walk"):
             print(f"{bundle_dir.name}: heading drift a random walk, cannot be rebuilt")
             continue
-        t = yaml.safe_load(truth_path.read_text())["transform"]
-        truth = Transform2D(t["theta"], t["tx"], t["ty"])
-        manifest = yaml.safe_load((bundle_dir / "bundle.yaml").read_text())
-        est = np.array([[p["x"], p["y"], p["yaw"]] for p in manifest["trajectory"]], float)
-        prior = manifest["pose"]["nav2"]
+        truth = parse_truth(yaml.safe_load(case.truth_path.read_text())).nav2_from_slam
+        manifest = read_manifest(bundle_dir)
+        est = np.array([[p.x, p.y, p.yaw] for p in manifest.trajectory_poses()], float)
+        prior = manifest.pose.nav2.to_pose()
         route, miss = true_route(
             est,
             truth,
-            (prior["x"], prior["y"]),
+            (prior.x, prior.y),
             params.get("drift_yaw_deg_per_m", 0.0),
             params.get("drift_scale", 0.0),
         )
