@@ -13,7 +13,7 @@ Arrays are indexed ``[row, col]``; points are ``(N, 2)`` arrays of ``(x, y)`` me
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -764,41 +764,74 @@ def icp(
     max_distance_m: float,
     iterations: int = 30,
 ) -> Transform2D:
-    """Point-to-point ICP of local wall points onto the nearest global wall cells.
+    """Point-to-point ICP of local wall points onto the nearest global wall cells: one start
+    (see :func:`icp_many`)."""
+    (found,) = icp_many(
+        points_slam, [start], grid, nearest, max_distance_m=max_distance_m, iterations=iterations
+    )
+    return found
+
+
+def icp_many(
+    points_slam: FloatArray,
+    starts: Sequence[Transform2D],
+    grid: Grid,
+    nearest: NearestWall,
+    *,
+    max_distance_m: float,
+    iterations: int = 30,
+) -> list[Transform2D]:
+    """Point-to-point ICP of local wall points onto the nearest global wall cells, from each of
+    ``starts`` on its own; the polished transforms in the same order.
 
     Correspondences come from a precomputed nearest-wall field, so every iteration is one lookup
     and one closed-form rigid fit (no scale). Pairs farther than ``max_distance_m`` (new
     obstacles, people, drift) are left out; the threshold shrinks to a third over the iterations.
+    A start stops when fewer than 10 pairs are left (its transform as it was) or when a step
+    moves it less than 0.1 mm.
+
+    All starts run as rows of one array: a piece's few hundred wall points make each numpy
+    operation cost more in its call than in its arithmetic, so one call for every start, not
+    one per start. A pair left out weighs zero in the sums instead of being dropped, which keeps
+    the rows rectangular.
     """
-    transform = start
-    # Coordinates as separate contiguous columns: every step below is a 1-D operation.
+    theta = np.array([t.theta for t in starts], dtype=float)
+    tx = np.array([t.tx for t in starts], dtype=float)
+    ty = np.array([t.ty for t in starts], dtype=float)
     sx, sy = np.ascontiguousarray(points_slam[:, 0]), np.ascontiguousarray(points_slam[:, 1])
+    live = np.arange(len(starts))
     for k in range(iterations):
+        if len(live) == 0:
+            break
         limit = max_distance_m * (1.0 - 0.66 * k / max(iterations - 1, 1))
-        c, s = math.cos(transform.theta), math.sin(transform.theta)
-        qx = c * sx - s * sy + transform.tx
-        qy = s * sx + c * sy + transform.ty
-        wx, wy = nearest.nearest_xy(qx, qy, grid)  # points off the field: never within limit
+        c, s = np.cos(theta[live])[:, None], np.sin(theta[live])[:, None]
+        qx = c * sx - s * sy + tx[live, None]
+        qy = s * sx + c * sy + ty[live, None]
+        wx, wy = nearest.nearest_xy(qx.ravel(), qy.ravel(), grid)  # off the field: never near
+        wx, wy = wx.reshape(qx.shape), wy.reshape(qx.shape)
         ex, ey = wx - qx, wy - qy
-        use = ex * ex + ey * ey <= limit * limit
-        n = int(np.count_nonzero(use))
-        if n < 10:
+        use = (ex * ex + ey * ey <= limit * limit).astype(float)
+        n = use.sum(axis=1)
+        fits = n >= 10
+        live, use, n, wx, wy = live[fits], use[fits], n[fits], wx[fits], wy[fits]
+        if len(live) == 0:
             break
-        ux, uy = sx[use], sy[use]
-        vx, vy = wx[use], wy[use]
-        msx, msy, mdx, mdy = ux.mean(), uy.mean(), vx.mean(), vy.mean()
-        ux, uy, vx, vy = ux - msx, uy - msy, vx - mdx, vy - mdy
+        # Sums of products, not matrix products (see Transform2D.apply).
+        msx, msy = (use * sx).sum(axis=1) / n, (use * sy).sum(axis=1) / n
+        mdx, mdy = (use * wx).sum(axis=1) / n, (use * wy).sum(axis=1) / n
+        ux, uy = sx - msx[:, None], sy - msy[:, None]
+        vx, vy = (wx - mdx[:, None]) * use, (wy - mdy[:, None]) * use
         # The closed-form rigid fit: the rotation from the cross-covariance of the pairs.
-        # Sums of products, not BLAS dot products (see Transform2D.apply).
-        sxy = float(np.sum(ux * vy) - np.sum(uy * vx))
-        theta = math.atan2(sxy, float(np.sum(ux * vx) + np.sum(uy * vy)))
-        c, s = math.cos(theta), math.sin(theta)
-        new = Transform2D(theta, float(mdx - (c * msx - s * msy)), float(mdy - (s * msx + c * msy)))
-        step = math.hypot(new.tx - transform.tx, new.ty - transform.ty)
-        transform = new
-        if step < 1e-4 and k > 5:
-            break
-    return transform
+        sxy = (ux * vy).sum(axis=1) - (uy * vx).sum(axis=1)
+        new = np.arctan2(sxy, (ux * vx).sum(axis=1) + (uy * vy).sum(axis=1))
+        c1, s1 = np.cos(new), np.sin(new)
+        ntx = mdx - (c1 * msx - s1 * msy)
+        nty = mdy - (s1 * msx + c1 * msy)
+        step = np.hypot(ntx - tx[live], nty - ty[live])
+        theta[live], tx[live], ty[live] = new, ntx, nty
+        if k > 5:
+            live = live[step >= 1e-4]
+    return [Transform2D(float(a), float(b), float(c)) for a, b, c in zip(theta, tx, ty, strict=True)]
 
 
 # --- the whole refinement --------------------------------------------------------------------
@@ -952,8 +985,7 @@ def align(
         nearest = view.nearest_wall_near(
             np.concatenate([t.apply(icp_walls) for t in found]), reach_m=icp_reach + 0.5
         )
-        for t in found:
-            t = icp(icp_walls, t, view.grid, nearest, max_distance_m=icp_reach)
+        for t in icp_many(icp_walls, found, view.grid, nearest, max_distance_m=icp_reach):
             if all(_distance(t, u, centre, radius) > 0.05 for _, u in polished):
                 polished.append((agree(t), t))
         # The consistency check warps the whole local map: only for the likeliest few, and not

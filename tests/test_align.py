@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 from worlds import colonnade, cut_local, office, offset
 
-from mapserver.align import align, make_view, structure_mask
+from mapserver.align import (
+    align,
+    icp,
+    icp_many,
+    known_points,
+    make_view,
+    structure_mask,
+    thin_points,
+)
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
@@ -159,3 +167,26 @@ def test_the_wide_view_is_built_only_when_the_narrow_search_fails(dtheta_deg: fl
     d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
     assert result.trusted and d < 0.03 and a < 0.3
     assert len(asked) == (1 if dtheta_deg > 8 else 0)
+
+
+def test_icp_polishes_each_start_on_its_own() -> None:
+    """Starts polished together land where each lands alone: near offsets converge on the
+    truth, and a start too far to find any wall within reach keeps its transform."""
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+    near_a = offset(TRUE, 0.12, -0.08, 1.0, CENTRE)
+    near_b = offset(TRUE, -0.1, 0.1, -1.5, CENTRE)
+    lost = offset(TRUE, 40.0, 40.0, 0.0, CENTRE)
+    view = make_view(world, cut.local, TRUE, search_xy_m=2.5)
+    walls = thin_points(known_points(cut.local, state=OCCUPIED), 2 * view.grid.resolution)
+    starts = [near_a, lost, near_b]
+    nearest = view.nearest_wall_near(np.concatenate([t.apply(walls) for t in starts]), reach_m=0.8)
+    together = icp_many(walls, starts, view.grid, nearest, max_distance_m=0.3)
+    alone = [icp(walls, t, view.grid, nearest, max_distance_m=0.3) for t in starts]
+    for a, b in zip(together, alone, strict=True):
+        assert (a.theta, a.tx, a.ty) == pytest.approx((b.theta, b.tx, b.ty), abs=1e-9)
+    for found in (together[0], together[2]):
+        d, angle = _errors(found, TRUE, CENTRE)
+        assert d < 0.05, f"position error {d:.3f} m"
+        assert angle < 0.3, f"angle error {angle:.2f} deg"
+    assert together[1] == lost
