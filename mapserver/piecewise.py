@@ -202,7 +202,9 @@ def align_pieces(
     transforms put that point within ``agree_m`` of each other. A piece that found a wrong
     match jumps; drift does not. Not the chain that holds the last piece: when the prior is
     off and the last piece took a wrong match (repeated rooms), the rest of the route,
-    consistent with itself, was left out with it. ``view`` must cover where the pieces land.
+    consistent with itself, was left out with it. The chain then grows outwards with the
+    pieces beyond it aligned again from its ends (:func:`grow_chain`). ``view`` must cover
+    where the pieces land.
 
     With ``anchored``, the last piece (aligned first) must satisfy it, else None: nothing more
     is aligned.
@@ -213,44 +215,91 @@ def align_pieces(
     observed = float(np.count_nonzero(labels >= 0)) * cell_m2
     found: list[Piece] = []
     prior, from_piece = start, False
-    for i in reversed(range(len(runs))):
+
+    def fit(i: int, starts: list[Transform2D]) -> Piece:
+        """Piece ``i`` aligned from the best of ``starts``."""
         mask = labels == i
         area = float(np.count_nonzero(mask)) * cell_m2
         junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
         walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
         if walls < min_walls:
             # Too few walls to align: the piece keeps its start, never scores.
-            piece = Piece(i, mask, prior, 0.0, False, area, junction, runs[i])
-        else:
-            sub = _sub_map(local, mask)
-            starts = [prior] if from_piece or also_from is None else [prior, also_from]
-            result = max(
-                (
-                    align_stage.align(
-                        sub,
-                        view,
-                        t0,
-                        search_xy_m=search_xy_m,
-                        search_theta_rad=search_theta_rad,
-                        narrow_theta_rad=search_theta_rad,
-                        min_score=min_score,
-                        pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
-                    )
-                    for t0 in starts
-                ),
-                key=lambda r: r.score,
-            )
-            t = result.nav2_from_slam
-            piece = Piece(i, mask, t, result.score, result.trusted, area, junction, runs[i])
-            if result.trusted:
-                prior, from_piece = t, True
+            return Piece(i, mask, starts[0], 0.0, False, area, junction, runs[i])
+        sub = _sub_map(local, mask)
+        result = max(
+            (
+                align_stage.align(
+                    sub,
+                    view,
+                    t0,
+                    search_xy_m=search_xy_m,
+                    search_theta_rad=search_theta_rad,
+                    narrow_theta_rad=search_theta_rad,
+                    min_score=min_score,
+                    pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+                )
+                for t0 in starts
+            ),
+            key=lambda r: r.score,
+        )
+        t = result.nav2_from_slam
+        return Piece(i, mask, t, result.score, result.trusted, area, junction, runs[i])
+
+    for i in reversed(range(len(runs))):
+        starts = [prior] if from_piece or also_from is None else [prior, also_from]
+        piece = fit(i, starts)
+        if piece.trusted:
+            prior, from_piece = piece.nav2_from_slam, True
         if anchored is not None and i == len(runs) - 1 and not anchored(piece):
             return None
         found.append(piece)
     found.reverse()
     keep = largest_chain(found, agree_m)
+    if keep:
+        found, keep = grow_chain(found, keep, lambda i, t: fit(i, [t]), agree_m)
     found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
     return Pieces(tuple(found), observed)
+
+
+def grow_chain(
+    pieces: Sequence[Piece],
+    chain: set[int],
+    fit: Callable[[int, Transform2D], Piece],
+    agree_m: float,
+) -> tuple[list[Piece], set[int]]:
+    """The chain of piece indices ``chain`` grown outwards along the route, with the pieces
+    that joined it aligned again.
+
+    The pieces beyond the chain's ends were aligned from whatever piece came after them on the
+    route, a wrong match among them too; the chain's end piece is the better start. Each piece
+    beyond an end is aligned again from that end's transform (``fit(index, start)``) and joins
+    when it scores and meets the end within ``agree_m``; it then becomes the end. One piece
+    that does not join is stepped over (a piece with too few walls, a stretch of clutter); the
+    next is then measured against the end at the middle of the stepped-over run, not where it
+    starts (a route's drift turns the two transforms apart over the run between them). Two in
+    a row stop the growth.
+    """
+    out = list(pieces)
+    chain = set(chain)
+    for step in (-1, 1):
+        end = min(chain) if step < 0 else max(chain)
+        over: list[int] = []
+        i = end + step
+        while 0 <= i < len(out) and len(over) < 2:
+            piece = fit(i, out[end].nav2_from_slam)
+            if over:
+                run = np.concatenate([out[j].run for j in over])
+                at = run[len(run) // 2][None]
+            else:  # where the later of the two starts
+                at = np.array([out[max(i, end)].junction])
+            gap = float(apart(piece.nav2_from_slam, out[end].nav2_from_slam, at)[0])
+            if piece.trusted and gap <= agree_m:
+                out[i], end, over = piece, i, []
+                chain.add(i)
+            else:
+                over.append(i)
+            i += step
+    return out, chain
 
 
 def apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:

@@ -361,6 +361,50 @@ def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior
     assert piecewise.largest_chain([_piece(0, 0.0, score_ok=False)], agree_m=0.5) == set()
 
 
+def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
+    """Pieces 2 and 3 are the chain. Aligned again from 2, piece 1 agrees and joins; 0 does
+    not. Beyond 3: 4 does not score and is stepped over; 5, turned 3 degrees about the middle
+    of 4's run, meets 3 there (10 m from where 5 starts, 0.52 m apart) and joins; 6 and 7 do
+    not join, which ends the growth before 8 (which would) is aligned at all."""
+
+    def run(i: int) -> np.ndarray:
+        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
+
+    def piece(i: int, t: Transform2D, trusted: bool) -> piecewise.Piece:
+        mask = np.zeros((2, 2), bool)
+        return piecewise.Piece(
+            i, mask, t, 0.9 if trusted else 0.3, trusted, 100.0, (20.0 * i, 0.0), run(i)
+        )
+
+    still = Transform2D(0.0, 0.0, 0.0)
+    refits = {
+        1: (Transform2D(0.0, 0.1, 0.0), True),
+        0: (Transform2D(0.0, 2.0, 0.0), True),
+        4: (still, False),
+        5: (_turn_about((90.0, 0.0), 3.0), True),
+        6: (Transform2D(0.0, 0.0, -1.5), True),
+        7: (still, False),
+        8: (still, True),
+    }
+    starts: dict[int, Transform2D] = {}
+
+    def fit(i: int, start: Transform2D) -> piecewise.Piece:
+        starts[i] = start
+        return piece(i, *refits[i])
+
+    # As first aligned: all but the chain took wrong matches from a wrong start.
+    pieces = [piece(i, Transform2D(0.0, 3.0, 0.0), True) for i in range(9)]
+    pieces[2], pieces[3] = piece(2, still, True), piece(3, still, True)
+    grown, chain = piecewise.grow_chain(pieces, {2, 3}, fit, agree_m=0.5)
+    assert chain == {1, 2, 3, 5}
+    assert sorted(starts) == [0, 1, 4, 5, 6, 7]
+    assert starts[0] == refits[1][0] and starts[1] == still and starts[5] == still
+    assert grown[1].nav2_from_slam == refits[1][0] and grown[5].nav2_from_slam == refits[5][0]
+    assert grown[0] == pieces[0] and grown[4] == pieces[4]
+    # Measured where 5 starts, the same turn keeps it out.
+    assert piecewise.apart(still, refits[5][0], np.array([[100.0, 0.0]]))[0] > 0.5
+
+
 def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
     local = from_states(np.full((40, 60), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     mask = np.zeros((40, 60), bool)
