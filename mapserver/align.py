@@ -831,7 +831,9 @@ def icp_many(
         theta[live], tx[live], ty[live] = new, ntx, nty
         if k > 5:
             live = live[step >= 1e-4]
-    return [Transform2D(float(a), float(b), float(c)) for a, b, c in zip(theta, tx, ty, strict=True)]
+    return [
+        Transform2D(float(a), float(b), float(c)) for a, b, c in zip(theta, tx, ty, strict=True)
+    ]
 
 
 # --- the whole refinement --------------------------------------------------------------------
