@@ -452,6 +452,12 @@ def removal_evidence(
     depth = cv2.distanceTransform(g_occ.astype(np.uint8), cv2.DIST_L2, 5) * resolution
     found = cand & (depth >= depth_m)
     open_space = ((local_state[box] == FREE) & ~g_occ).astype(np.uint8)
+    # Seen through: open space on either side beyond the structure's fringe. The cells next to
+    # it are its ragged face (holes between the global map's hits, free or unknown), which
+    # grazing rays erode with the face itself: free there and unknown beyond is a face, not a
+    # structure looked through.
+    fringe = cv2.dilate(g_occ.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    far_space = np.where(fringe, 0, open_space).astype(np.uint8)
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # One-sided line kernels: open space within `reach` before, and after, the cell.
         size = 2 * reach + 1
@@ -459,8 +465,8 @@ def removal_evidence(
         for t in range(1, reach + 1):
             before[reach - dr * t, reach - dc * t] = 1
         # cv2.dilate reads the source at each kernel cell's offset from the anchor (the centre).
-        seen_before = cv2.dilate(open_space, before) > 0
-        seen_after = cv2.dilate(open_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
+        seen_before = cv2.dilate(far_space, before) > 0
+        seen_after = cv2.dilate(far_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
         found |= cand & seen_before & seen_after
     # Seen through along a line, but beside a structure too thick to see through whose inside
     # the robot never saw: the line ran along its face (a ragged face's notches are open space

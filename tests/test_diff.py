@@ -489,6 +489,29 @@ def test_a_ragged_face_of_a_block_never_seen_inside_is_no_evidence() -> None:
     assert removal_evidence(thin, seen, gone, **kw).sum() == gone.sum()
 
 
+def test_a_holed_wall_face_eroded_to_an_unseen_inside_is_no_evidence() -> None:
+    """A wall 2 cells thick bounds a room the global map never saw inside (unknown); its inner
+    row has holes between the hits, as a scanned map draws a face. Grazing rays along it left
+    both rows free in the local map, the room beyond unseen: the holes are free on the far
+    side, one cell deep, yet nothing was removed. The same wall seen through, the room behind
+    it seen free for the first time (unknown in the global map still), is a removal."""
+    from mapserver.diff import removal_evidence
+
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
+    g = np.full((60, 60), UNKNOWN, np.uint8)
+    g[31:, :] = FREE  # the corridor below the wall
+    g[30, 5:55] = OCCUPIED  # the wall's outer row, whole
+    g[29, 5:55:4] = OCCUPIED  # its inner row, hits with holes between
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[30:, :] = FREE
+    loc[29, 20:40] = FREE  # both rows eroded for 1 m
+    eroded = (g == OCCUPIED) & (loc == FREE)
+    eroded[:, :20] = eroded[:, 40:] = False
+    assert eroded.sum() == 25 and not removal_evidence(g, loc, eroded, **kw).any()
+    loc[10:29, 20:40] = FREE  # the wall gone: the room behind seen through the gap
+    assert removal_evidence(g, loc, eroded, **kw).sum() == eroded.sum()
+
+
 def _notched_block() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A solid block 1.5 m deep (rows 30-59) below open space, 0.05 m cells; the local map
     shows a notch 1 m wide and 0.5 m deep cut into its face (rows 30-39, cols 40-59), the
