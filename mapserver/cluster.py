@@ -61,7 +61,8 @@ def cluster_mask(
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
-    its pixels are in it. ``engine`` picks the DBSCAN implementation (the labels are the same).
+    its pixels are in it, and reported as those and its pixels within ``eps_m`` of them.
+    ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
     rows, cols = nonzero_cells(mask)
     if len(rows) == 0:
@@ -84,8 +85,17 @@ def cluster_mask(
         area = len(pts) * grid.resolution**2
         if area < min_area_m2:
             continue
-        if evidence is not None and evidence[rows[members], cols[members]].mean() < min_evidence:
-            continue
+        if evidence is not None:
+            shown = evidence[rows[members], cols[members]]
+            if shown.mean() < min_evidence:
+                continue
+            # Reported as its evidence and what lies within eps of it: a strip of a wall's face
+            # that grazing rays eroded (no evidence) joins a removal it touches, and would
+            # stretch its box along the wall.
+            reach_px = eps_m / grid.resolution
+            members[members] = _near_evidence(rows[members], cols[members], shown, reach_px)
+            pts = xy[members]
+            area = len(pts) * grid.resolution**2
         lo, hi = pts.min(axis=0) - half, pts.max(axis=0) + half
         c = pts.mean(axis=0)
         out.append(
@@ -99,6 +109,19 @@ def cluster_mask(
             )
         )
     return out
+
+
+def _near_evidence(
+    rows: IntArray, cols: IntArray, shown: NDArray[np.bool_], reach_px: float
+) -> NDArray[np.bool_]:
+    """Which of a cluster's pixels ``(rows, cols)`` lie within ``reach_px`` of one of them that
+    ``shown`` holds."""
+    r0, c0 = int(rows.min()), int(cols.min())
+    h, w = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
+    away = np.ones((h + 2, w + 2), np.uint8)
+    away[rows[shown] - r0 + 1, cols[shown] - c0 + 1] = 0
+    distance = cv2.distanceTransform(away, cv2.DIST_L2, 5)
+    return np.asarray(distance[rows - r0 + 1, cols - c0 + 1] <= reach_px)
 
 
 def _sklearn_dbscan() -> Any:

@@ -133,6 +133,28 @@ def test_cluster_merges_fragments_closer_than_eps(engine: Engine) -> None:
     assert len(found) == 2
 
 
+def test_a_removed_obstacle_is_reported_without_the_face_strip_it_touches() -> None:
+    """A block seen gone (its cells evidence) touches a strip one cell wide running 1.5 m
+    along the wall's face, free without evidence (grazing rays): one cluster, kept for its
+    evidence, and reported as the block and what lies within eps of it, not as a box 1.5 m
+    longer."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    mask = np.zeros(grid.shape, bool)
+    mask[10:30, 40:50] = True  # 1.0 m x 0.5 m block
+    mask[30:60, 49] = True  # the face strip below it, 1.5 m
+    evidence = np.zeros(grid.shape, bool)
+    evidence[10:30, 40:50] = True
+    (found,) = cluster_mask(
+        mask, grid, "removed", eps_m=0.3, min_samples=3, evidence=evidence, min_evidence=0.5
+    )
+    assert found.pixels == 200 + 6  # the block, and the strip's first 0.3 m
+    lo_y, hi_y = found.bbox[1], found.bbox[3]
+    assert hi_y - lo_y == pytest.approx(1.0 + 0.3)
+    # Without evidence to go by, the cluster is all its pixels.
+    (whole,) = cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3)
+    assert whole.pixels == 230
+
+
 @pytest.mark.parametrize("seed", range(16))
 def test_grid_dbscan_labels_are_scikit_learns(seed: int) -> None:
     from sklearn.cluster import DBSCAN
