@@ -28,7 +28,7 @@ from mapserver import align as align_stage
 from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid
+from mapserver.grid import Grid, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -212,16 +212,20 @@ def align_pieces(
     runs = route_pieces(route_slam, piece_m=piece_m)
     labels = label_cells(local, runs)
     cell_m2 = local.resolution**2
-    observed = float(np.count_nonzero(labels >= 0)) * cell_m2
+    seen = labels >= 0
+    observed = float(np.count_nonzero(seen)) * cell_m2
+    # Each piece's cells, and its wall cells, counted once for all.
+    cells = np.bincount(labels[seen], minlength=len(runs))
+    walls_of = np.bincount(labels[seen & (local.state == OCCUPIED)], minlength=len(runs))
     found: list[Piece] = []
     prior, from_piece = start, False
 
     def fit(i: int, starts: list[Transform2D]) -> Piece:
         """Piece ``i`` aligned from the best of ``starts``."""
         mask = labels == i
-        area = float(np.count_nonzero(mask)) * cell_m2
+        area = float(cells[i]) * cell_m2
         junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
-        walls = int(np.count_nonzero(mask & (local.state == OCCUPIED)))
+        walls = int(walls_of[i])
         if walls < min_walls:
             # Too few walls to align: the piece keeps its start, never scores.
             return Piece(i, mask, starts[0], 0.0, False, area, junction, runs[i])
@@ -553,7 +557,7 @@ def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
     src, dst = [], []
     grid = Grid.of_map(local)
     for piece in pieces.trusted:
-        rows, cols = np.nonzero(piece.mask)
+        rows, cols = nonzero_cells(piece.mask)
         step = max(1, len(rows) // 2000)
         xy = grid.to_world(np.stack([cols[::step], rows[::step]], axis=1).astype(float))
         src.append(xy)
