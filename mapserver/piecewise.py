@@ -576,6 +576,7 @@ __all__ = [
     "compose",
     "departure",
     "fit_rigid",
+    "grow_chain",
     "label_cells",
     "lands_within",
     "largest_chain",
