@@ -534,6 +534,31 @@ def test_a_holed_wall_face_eroded_to_an_unseen_inside_is_no_evidence() -> None:
     assert removal_evidence(g, loc, eroded, **kw).sum() == eroded.sum()
 
 
+def test_the_face_in_front_of_a_notch_seen_deep_is_evidence_and_an_eroded_face_is_not() -> None:
+    """A notch 0.75 m deep carved into a 2 m block from the open space above it: the rays that
+    saw its cells 0.15 m and more inside the block crossed the face in front of them, so the
+    face's cells there (too shallow for the depth rule, with nothing but structure beyond them
+    to be seen through) are evidence too. The same face eroded with nothing seen behind it is
+    not."""
+    from mapserver.diff import removal_evidence
+
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
+    g = np.full((80, 100), FREE, np.uint8)
+    g[20:, 10:90] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:20, :] = FREE
+    loc[20:35, 40:60] = FREE  # the notch, seen free ...
+    loc[20:36, 39] = loc[20:36, 60] = loc[35, 39:61] = OCCUPIED  # ... with its new walls
+    notch = (g == OCCUPIED) & (loc == FREE)
+    evidence = removal_evidence(g, loc, notch, **kw)
+    assert evidence[20:22, 42:58].all()  # the face, 0.05-0.1 m deep (not its corners)
+    assert evidence[22:33, 40:60].all()  # and what lies deeper
+    eroded = np.full(g.shape, UNKNOWN, np.uint8)
+    eroded[:22, :] = FREE  # grazing rays wore the face two cells deep, nothing behind
+    face = (g == OCCUPIED) & (eroded == FREE)
+    assert face.sum() == 160 and not removal_evidence(g, eroded, face, **kw).any()
+
+
 def _notched_block() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A solid block 1.5 m deep (rows 30-59) below open space, 0.05 m cells; the local map
     shows a notch 1 m wide and 0.5 m deep cut into its face (rows 30-39, cols 40-59), the
