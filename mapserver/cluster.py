@@ -61,7 +61,8 @@ def cluster_mask(
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
-    its pixels are in it, and reported as those and its pixels within ``eps_m`` of them.
+    its pixels are in it, and reported as those and its pixels within ``eps_m`` of them (the
+    area floor applies to the cluster before that).
     ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
     rows, cols = nonzero_cells(mask)
@@ -92,10 +93,13 @@ def cluster_mask(
             # Reported as its evidence and what lies within eps of it: a strip of a wall's face
             # that grazing rays eroded (no evidence) joins a removal it touches, and would
             # stretch its box along the wall.
-            reach_px = eps_m / grid.resolution
-            members[members] = _near_evidence(rows[members], cols[members], shown, reach_px)
-            pts = xy[members]
-            area = len(pts) * grid.resolution**2
+            # The area floor above judged the cluster as found; this shapes only the report.
+            # With no evidence at all (a share of 0 asked for), it is reported whole.
+            if shown.any():
+                reach_px = eps_m / grid.resolution
+                members[members] = _near_evidence(rows[members], cols[members], shown, reach_px)
+                pts = xy[members]
+                area = len(pts) * grid.resolution**2
         lo, hi = pts.min(axis=0) - half, pts.max(axis=0) + half
         c = pts.mean(axis=0)
         out.append(

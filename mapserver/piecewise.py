@@ -220,8 +220,10 @@ def align_pieces(
     found: list[Piece] = []
     prior, from_piece = start, False
 
-    def fit(i: int, starts: list[Transform2D]) -> Piece:
-        """Piece ``i`` aligned from the best of ``starts``."""
+    def fit(i: int, starts: list[Transform2D], pivot_at: int = -1) -> Piece:
+        """Piece ``i`` aligned from the best of ``starts``, turned about its run's point
+        ``pivot_at`` (where it meets the piece its start came from: the end of its run, the
+        route's next piece; the start, the one before)."""
         mask = labels == i
         area = float(cells[i]) * cell_m2
         junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
@@ -240,7 +242,7 @@ def align_pieces(
                     search_theta_rad=search_theta_rad,
                     narrow_theta_rad=search_theta_rad,
                     min_score=min_score,
-                    pivot_slam=(float(runs[i][-1, 0]), float(runs[i][-1, 1])),
+                    pivot_slam=(float(runs[i][pivot_at, 0]), float(runs[i][pivot_at, 1])),
                 )
                 for t0 in starts
             ),
@@ -260,7 +262,7 @@ def align_pieces(
     found.reverse()
     keep = largest_chain(found, agree_m)
     if keep:
-        found, keep = grow_chain(found, keep, lambda i, t: fit(i, [t]), agree_m)
+        found, keep = grow_chain(found, keep, lambda i, t, at: fit(i, [t], at), agree_m)
     found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
     return Pieces(tuple(found), observed)
 
@@ -268,7 +270,7 @@ def align_pieces(
 def grow_chain(
     pieces: Sequence[Piece],
     chain: set[int],
-    fit: Callable[[int, Transform2D], Piece],
+    fit: Callable[[int, Transform2D, int], Piece],
     agree_m: float,
 ) -> tuple[list[Piece], set[int]]:
     """The chain of piece indices ``chain`` grown outwards along the route, with the pieces
@@ -276,7 +278,9 @@ def grow_chain(
 
     The pieces beyond the chain's ends were aligned from whatever piece came after them on the
     route, a wrong match among them too; the chain's end piece is the better start. Each piece
-    beyond an end is aligned again from that end's transform (``fit(index, start)``) and joins
+    beyond an end is aligned again from that end's transform (``fit(index, start, pivot)``,
+    turned about the point of its run nearest the end: ``-1`` its run's end growing backwards,
+    ``0`` its start growing forwards) and joins
     when it scores and meets the end within ``agree_m``; it then becomes the end. One piece
     that does not join is stepped over (a piece with too few walls, a stretch of clutter); the
     next is then measured against the end at the middle of the stepped-over run, not where it
@@ -290,7 +294,7 @@ def grow_chain(
         over: list[int] = []
         i = end + step
         while 0 <= i < len(out) and len(over) < 2:
-            piece = fit(i, out[end].nav2_from_slam)
+            piece = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
             if over:
                 run = np.concatenate([out[j].run for j in over])
                 at = run[len(run) // 2][None]

@@ -646,3 +646,36 @@ def test_a_wall_beside_a_tile_that_does_not_fit_still_has_the_wider_tolerance() 
     kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
     removed = raw_differences(g, loc, np.ones(g.shape, bool), **kw, extra_tolerance_m=extra).removed
     assert not removed.any()
+
+
+def test_a_removed_cluster_without_evidence_is_reported_whole_when_no_share_is_asked() -> None:
+    grid = Grid(0.0, 0.0, 0.05, 40, 40)
+    mask = np.zeros(grid.shape, bool)
+    mask[10:20, 10:20] = True
+    none = np.zeros(grid.shape, bool)
+    (found,) = cluster_mask(
+        mask, grid, "removed", eps_m=0.3, min_samples=3, evidence=none, min_evidence=0.0
+    )
+    assert found.pixels == 100
+
+
+def test_a_face_with_a_wall_seen_standing_behind_it_is_no_evidence_of_a_tunnel_beyond() -> None:
+    """A tunnel seen free 0.3 m inside a block from its west end, and the block's top face
+    eroded above it with rows seen occupied between the two: no ray that reached the tunnel
+    crossed that face, so the tunnel is no evidence for it."""
+    from mapserver.diff import removal_evidence
+
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
+    g = np.full((90, 100), FREE, np.uint8)
+    g[20:70, 10:90] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:20, :] = loc[:, :10] = FREE
+    loc[20:70, 10:90] = OCCUPIED
+    loc[26:31, 10:50] = FREE  # the tunnel, seen from the west
+    loc[20:22, 30:46] = FREE  # the face above it, eroded
+    face = np.zeros(g.shape, bool)
+    face[20:22, 30:46] = True
+    removed = face | ((g == OCCUPIED) & (loc == FREE))
+    evidence = removal_evidence(g, loc, removed, **kw)
+    assert evidence[26:31, 20:45].any()  # the tunnel itself, seen deep
+    assert not (evidence & face).any()

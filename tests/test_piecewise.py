@@ -388,8 +388,10 @@ def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
     }
     starts: dict[int, Transform2D] = {}
 
-    def fit(i: int, start: Transform2D) -> piecewise.Piece:
-        starts[i] = start
+    pivots: dict[int, int] = {}
+
+    def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
+        starts[i], pivots[i] = start, pivot_at
         return piece(i, *refits[i])
 
     # As first aligned: all but the chain took wrong matches from a wrong start.
@@ -399,6 +401,8 @@ def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
     assert chain == {1, 2, 3, 5}
     assert sorted(starts) == [0, 1, 4, 5, 6, 7]
     assert starts[0] == refits[1][0] and starts[1] == still and starts[5] == still
+    # Turned about where each meets the chain: its run's end going back, its start going on.
+    assert pivots == {1: -1, 0: -1, 4: 0, 5: 0, 6: 0, 7: 0}
     assert grown[1].nav2_from_slam == refits[1][0] and grown[5].nav2_from_slam == refits[5][0]
     assert grown[0] == pieces[0] and grown[4] == pieces[4]
     # Measured where 5 starts, the same turn keeps it out.
