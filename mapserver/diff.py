@@ -467,6 +467,7 @@ def removal_evidence(
     # them crossed its face in front of them (_FACE_ANCHOR_DEPTH).
     anchors = cand & (depth >= _FACE_ANCHOR_DEPTH * depth_m)
     nowhere = np.zeros(cand.shape, bool)
+    seen_free = local_state[box] == FREE
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # One-sided line kernels: open space within `reach` before, and after, the cell.
         size = 2 * reach + 1
@@ -478,10 +479,10 @@ def removal_evidence(
         seen_after = cv2.dilate(far_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
         found |= cand & seen_before & seen_after
         # A face cell with open space on one side and, in line on the other, a cell seen
-        # free deep inside with only removed cells (seen free) between: on the path of the
-        # rays that saw that cell.
-        deep_after, _ = _reached(anchors, cand, nowhere, (-dr, -dc), reach)
-        deep_before, _ = _reached(anchors, cand, nowhere, (dr, dc), reach)
+        # free deep inside with only cells seen free between (no wall seen standing): on the
+        # path of the rays that saw that cell.
+        deep_after, _ = _reached(anchors, seen_free, nowhere, (-dr, -dc), reach)
+        deep_before, _ = _reached(anchors, seen_free, nowhere, (dr, dc), reach)
         found |= cand & ((seen_before & deep_after) | (deep_before & seen_after))
     # Seen through along a line, but beside a structure too thick to see through whose inside
     # the robot never saw: the line ran along its face (a ragged face's notches are open space
