@@ -466,8 +466,9 @@ def removal_evidence(
     # Cells seen free well inside a structure too thick to see through: the rays that reached
     # them crossed its face in front of them (_FACE_ANCHOR_DEPTH).
     anchors = cand & (depth >= _FACE_ANCHOR_DEPTH * depth_m)
-    nowhere = np.zeros(cand.shape, bool)
     seen_free = local_state[box] == FREE
+    # The face cells it can reach lie within `reach` of an anchor: its work in that window.
+    near = box_around(anchors, reach)
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # One-sided line kernels: open space within `reach` before, and after, the cell.
         size = 2 * reach + 1
@@ -481,9 +482,12 @@ def removal_evidence(
         # A face cell with open space on one side and, in line on the other, a cell seen
         # free deep inside with only cells seen free between (no wall seen standing): on the
         # path of the rays that saw that cell.
-        deep_after, _ = _reached(anchors, seen_free, nowhere, (-dr, -dc), reach)
-        deep_before, _ = _reached(anchors, seen_free, nowhere, (dr, dc), reach)
-        found |= cand & ((seen_before & deep_after) | (deep_before & seen_after))
+        if near is not None:
+            deep_after, _ = _reached(anchors[near], seen_free[near], None, (-dr, -dc), reach)
+            deep_before, _ = _reached(anchors[near], seen_free[near], None, (dr, dc), reach)
+            found[near] |= cand[near] & (
+                (seen_before[near] & deep_after) | (deep_before & seen_after[near])
+            )
     # Seen through along a line, but beside a structure too thick to see through whose inside
     # the robot never saw: the line ran along its face (a ragged face's notches are open space
     # on both sides of the cells between them), not through it. The depth rule decides there.
@@ -566,11 +570,15 @@ def _reached_from_open_space(
 
 
 def _reached(
-    start: BoolArray, passable: BoolArray, deep: BoolArray, step: tuple[int, int], n: int
+    start: BoolArray,
+    passable: BoolArray,
+    deep: BoolArray | None,
+    step: tuple[int, int],
+    n: int,
 ) -> tuple[BoolArray, BoolArray]:
     """The cells reached from ``start`` in at most ``n`` steps of ``step`` (row, col), every
     cell passed on the way (not the last) ``passable``; and those of them reached through a
-    ``deep`` cell."""
+    ``deep`` cell (none when ``deep`` is None, which skips that work)."""
     seen = np.zeros(start.shape, bool)
     seen_deep = np.zeros(start.shape, bool)
     front, front_deep = start, np.zeros(start.shape, bool)
@@ -580,13 +588,14 @@ def _reached(
     source = (slice(max(-dr, 0), h + min(-dr, 0)), slice(max(-dc, 0), w + min(-dc, 0)))
     for _ in range(n):
         moved = np.zeros(start.shape, bool)
-        moved_deep = np.zeros(start.shape, bool)
         moved[to] = front[source]
-        moved_deep[to] = front_deep[source]
         seen |= moved
-        seen_deep |= moved_deep
         front = moved & passable
-        front_deep = (moved_deep | (front & deep)) & passable
+        if deep is not None:
+            moved_deep = np.zeros(start.shape, bool)
+            moved_deep[to] = front_deep[source]
+            seen_deep |= moved_deep
+            front_deep = (moved_deep | (front & deep)) & passable
         if not front.any():
             break
     return seen, seen_deep
