@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mapserver.diff import distance_to
 from mapserver.grid import Grid, nonzero_cells
 
 IntArray = NDArray[np.intp]
@@ -119,13 +120,11 @@ def _near_evidence(
     rows: IntArray, cols: IntArray, shown: NDArray[np.bool_], reach_px: float
 ) -> NDArray[np.bool_]:
     """Which of a cluster's pixels ``(rows, cols)`` lie within ``reach_px`` of one of them that
-    ``shown`` holds."""
+    ``shown`` holds (:func:`mapserver.diff.distance_to` on the cluster's own box)."""
     r0, c0 = int(rows.min()), int(cols.min())
-    h, w = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
-    away = np.ones((h + 2, w + 2), np.uint8)
-    away[rows[shown] - r0 + 1, cols[shown] - c0 + 1] = 0
-    distance = cv2.distanceTransform(away, cv2.DIST_L2, 5)
-    return np.asarray(distance[rows - r0 + 1, cols - c0 + 1] <= reach_px)
+    evidence = np.zeros((int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1), bool)
+    evidence[rows[shown] - r0, cols[shown] - c0] = True
+    return np.asarray(distance_to(evidence)[rows - r0, cols - c0] <= reach_px)
 
 
 def _sklearn_dbscan() -> Any:
