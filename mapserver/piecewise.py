@@ -28,7 +28,7 @@ from mapserver import align as align_stage
 from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid, nonzero_cells
+from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -121,7 +121,7 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
         # Dense points along the run, so that its whole path is a seed, not only its poses.
-        px = np.rint(grid.to_pixel(_densify(run, local.resolution))).astype(np.int64)
+        px = np.rint(grid.to_pixel(densify(run, local.resolution))).astype(np.int64)
         ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         plus[px[ok, 1] // f, px[ok, 0] // f] = i + 1
     if not plus.any():
@@ -154,7 +154,9 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     return labels
 
 
-def _densify(run: FloatArray, step_m: float) -> FloatArray:
+def densify(run: FloatArray, step_m: float) -> FloatArray:
+    """The polyline ``run`` (N, 2) with points added so that none is more than ``step_m`` from
+    the next."""
     if len(run) < 2:
         return run
     out = [run[:1]]
@@ -555,20 +557,25 @@ def unfit_tiles(
 
 
 def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
-    """The one rigid transform closest to the trusted pieces' (least squares over their known
-    cells, a sample of each weighted by its area): what ``result.yaml`` reports as the
-    alignment. None when no piece is trusted."""
-    src, dst = [], []
-    grid = Grid.of_map(local)
-    for piece in pieces.trusted:
-        rows, cols = nonzero_cells(piece.mask)
-        step = max(1, len(rows) // 2000)
-        xy = grid.to_world(np.stack([cols[::step], rows[::step]], axis=1).astype(float))
-        src.append(xy)
-        dst.append(piece.nav2_from_slam.apply(xy))
-    if not src:
+    """The one rigid transform that best carries the robot's route onto the building (least
+    squares over the route, a point every 0.1 m): what ``result.yaml`` reports as the
+    alignment. Each trusted piece carries its own run; a piece left out carries its run as the
+    trusted piece nearest it along the route does (the best the pieces know of it). None when
+    no piece is trusted."""
+    by_index = {p.index: p for p in pieces.pieces}
+    trusted = [p.index for p in pieces.trusted]
+    if not trusted:
         return None
-    return fit_rigid_points(np.concatenate(src), np.concatenate(dst))
+    src, dst = [], []
+    for piece in pieces.pieces:
+        nearest = min(trusted, key=lambda j: (abs(j - piece.index), -j))
+        xy = densify(piece.run, 0.1)
+        src.append(xy)
+        dst.append(by_index[nearest].nav2_from_slam.apply(xy))
+    xy = np.concatenate(src)
+    if len(xy) < 3:
+        return pieces.trusted[0].nav2_from_slam
+    return fit_rigid_points(xy, np.concatenate(dst))
 
 
 __all__ = [
@@ -578,6 +585,7 @@ __all__ = [
     "another_pass_explains",
     "apart",
     "compose",
+    "densify",
     "departure",
     "fit_rigid",
     "grow_chain",

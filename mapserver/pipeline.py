@@ -221,11 +221,17 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
     return _Inputs(files, local, global_map)
 
 
-def _route_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> np.ndarray | None:
+def _route_slam(files: BundleFiles) -> np.ndarray | None:
+    """The robot's route (N, 2), slam frame, or None when the bundle has none."""
     poses = files.manifest.trajectory_poses()
     if not poses:
         return None
-    return nav2_from_slam.apply(np.array([[p.x, p.y] for p in poses]))
+    return np.array([[p.x, p.y] for p in poses])
+
+
+def _route_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> np.ndarray | None:
+    route = _route_slam(files)
+    return None if route is None else nav2_from_slam.apply(route)
 
 
 def _robot_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> Pose2D:
@@ -526,15 +532,22 @@ _PASS_SHARE = 0.8
 
 
 def _rigid_of_warp(
-    local: OccupancyMap, transform: Transform2D, drift: deform.DriftStack
+    local: OccupancyMap,
+    transform: Transform2D,
+    drift: deform.DriftStack,
+    route_slam: np.ndarray | None = None,
 ) -> Transform2D:
-    """The rigid transform closest to ``transform`` plus the drift correction over the local
-    walls (one point per 0.25 m): the slam map's best rigid fit to the building, where the
-    alignment's own fit leans to the part whose walls carried it."""
-    walls = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), 0.25)
-    if len(walls) < 3:
+    """The rigid transform closest to ``transform`` plus the drift correction along the robot's
+    route (``route_slam`` (N, 2), a point every 0.1 m), or over the local walls (one point per
+    0.25 m) without one: the transform that best carries the route the robot drove onto the
+    building, where the alignment's own fit leans to the part whose walls carried it."""
+    if route_slam is not None and len(route_slam) >= 2:
+        points = piecewise.densify(route_slam, 0.1)
+    else:
+        points = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), 0.25)
+    if len(points) < 3:
         return transform
-    return fit_rigid(walls, transform.apply(walls) + drift.at(walls))
+    return fit_rigid(points, transform.apply(points) + drift.at(points))
 
 
 def _refit(
@@ -894,14 +907,17 @@ def _warp_piece(
 
 
 def _reported_transform(
-    local: OccupancyMap, alignment: align_stage.Alignment, warped: _Warped
+    local: OccupancyMap,
+    alignment: align_stage.Alignment,
+    warped: _Warped,
+    route_slam: np.ndarray | None,
 ) -> Transform2D:
     """The slam -> nav2 transform to report for the local map warped whole: the rigid fit of
     the alignment's transform plus the drift correction when that is ``_REPORT_WARP_M`` or
     more, else the alignment's."""
     transform = alignment.nav2_from_slam
     if warped.drift is not None and warped.drift_m >= _REPORT_WARP_M:
-        return _rigid_of_warp(local, transform, warped.drift)
+        return _rigid_of_warp(local, transform, warped.drift, route_slam)
     return transform
 
 
@@ -1262,7 +1278,7 @@ def process_bundle(
     if pieces is None and not alignment.trusted and settings.align.pieces:
         pieces = stages.run("pieces", in_pieces)
     warped = stages.run("warp", partial(_warp, local, search_view, alignment, pieces, config))
-    transform = _reported_transform(local, alignment, warped)
+    transform = _reported_transform(local, alignment, warped, _route_slam(files))
     misfit_m = settings.diff.max_misfit_tolerance_m
     unfit = None
     # Every bundle with fit_check; else only a drifting one (a kink beyond the warp leaves a

@@ -331,6 +331,25 @@ def test_the_transform_reported_after_a_drift_correction_is_the_rigid_fit_of_bot
     )
 
 
+def test_the_transform_reported_after_a_drift_correction_follows_the_robot_s_route() -> None:
+    """A drift field that moves only the east half of the map 0.4 m north: a route driven in
+    the west half, where nothing moved, is carried by the alignment's transform alone, so that
+    is the one reported; over the walls (no route) the east walls pull it north."""
+    from mapserver.deform import DriftField, DriftStack
+    from mapserver.pipeline import _rigid_of_warp
+
+    local = office(width_m=20.0, height_m=12.0, seed=2)
+    t = Transform2D(0.0, 0.0, 0.0)
+    shifts = np.zeros((21, 21, 2), np.float32)  # nodes every 2 m from (-20, -20)
+    shifts[:, 16:, 1] = 0.4  # x >= 12: 0.4 m north (x 10-12 between the two)
+    east = DriftStack((DriftField(-20.0, -20.0, 2.0, shifts),))
+    route = np.array([[1.0, 2.0], [8.0, 2.0], [8.0, 9.0], [1.0, 9.0]])
+    got = _rigid_of_warp(local, t, east, route)
+    assert (got.theta, got.tx, got.ty) == pytest.approx((0.0, 0.0, 0.0), abs=1e-6)
+    walls = _rigid_of_warp(local, t, east)
+    assert walls.apply(np.array([[10.0, 6.0]]))[0, 1] > 6.05
+
+
 def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() -> None:
     rng = np.random.default_rng(3)
     global_walls = np.zeros((300, 360), bool)

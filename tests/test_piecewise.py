@@ -329,6 +329,35 @@ def test_departure_is_how_far_a_piece_moves_its_cells_from_the_whole_fit() -> No
     )
 
 
+def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
+    """Three pieces of a straight 60 m route east: the first two trusted (the second 0.3 m
+    north of the first: drift), the third left out with a wrong match 5 m off. The transform
+    reported is the least-squares fit of the route carried by the trusted pieces, the left-out
+    run carried as its nearest trusted piece carries it: the wrong match weighs nothing, and
+    the fit lies between the two trusted transforms, nearer the one that carries two runs."""
+    mask = np.zeros((2, 2), bool)
+    local = from_states(np.full((2, 2), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
+    runs = [np.array([[20.0 * i, 0.0], [20.0 * i + 20.0, 0.0]]) for i in range(3)]
+    moves = [Transform2D(0.0, 0.0, 0.0), Transform2D(0.0, 0.0, 0.3), Transform2D(0.5, 5.0, 5.0)]
+    pieces = piecewise.Pieces(
+        tuple(
+            piecewise.Piece(i, mask, moves[i], 0.9, i < 2, 100.0, tuple(runs[i][0]), runs[i])
+            for i in range(3)
+        ),
+        300.0,
+    )
+    got = piecewise.fit_rigid(local, pieces)
+    assert got is not None
+    # Each run carried as a straight line (a third at y 0, two thirds at y 0.3) is fitted by
+    # a small turn; the mean of the carried points moves two thirds of the way north.
+    mid = got.apply(np.array([[30.0, 0.0]]))[0]
+    assert mid[1] == pytest.approx(0.2, abs=0.01)
+    assert abs(got.theta) < math.radians(1.0) and abs(mid[0] - 30.0) < 0.01
+    # With no piece trusted there is nothing to report.
+    none = piecewise.Pieces(tuple(dataclasses.replace(p, trusted=False) for p in pieces.pieces), 1)
+    assert piecewise.fit_rigid(local, none) is None
+
+
 def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
     """Each trusted piece gets its own drift correction; ``alignment.drift_m`` is the largest of
     them (it said 0 for every bundle aligned in pieces)."""
