@@ -438,6 +438,39 @@ def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
     assert piecewise.apart(still, refits[5][0], np.array([[100.0, 0.0]]))[0] > 0.5
 
 
+def test_a_piece_turned_off_the_chain_s_drift_does_not_join_it() -> None:
+    """A route east along y = 0 in 20 m pieces whose drift turns each one 1.5 degrees more
+    than the last, about where it meets the one before (so neighbours meet exactly). Piece 4,
+    a wrong match, turns 5.5 degrees the other way about its start: it meets piece 3 where
+    they join as well as a right one would, yet it is 7 degrees off the heading the chain's
+    drift predicts for it, and is stepped over; piece 5, on the trend, joins across it.
+    Without the heading rule, piece 4 joins."""
+
+    def run(i: int) -> np.ndarray:
+        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
+
+    def piece(i: int, t: Transform2D) -> piecewise.Piece:
+        mask = np.zeros((2, 2), bool)
+        return piecewise.Piece(i, mask, t, 0.9, True, 100.0, (20.0 * i, 0.0), run(i))
+
+    drifted = [Transform2D(0.0, 0.0, 0.0)]
+    for i in range(1, 6):  # each turned on 1.5 degrees about its start
+        drifted.append(drifted[-1].compose(_turn_about((20.0 * i, 0.0), 1.5)))
+    wrong = drifted[3].compose(_turn_about((80.0, 0.0), -5.5))
+    refits = {4: piece(4, wrong), 5: piece(5, drifted[5])}
+
+    def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
+        return refits[i]
+
+    pieces = [piece(i, drifted[i]) for i in range(4)] + [refits[4], refits[5]]
+    assert piecewise.heading_trend(pieces[:4], 4) == pytest.approx(math.radians(6.0))
+    assert piecewise.apart(wrong, drifted[3], np.array([[80.0, 0.0]]))[0] < 1e-9
+    _, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
+    assert chain == {0, 1, 2, 3, 5}
+    _, without = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5, max_turn_rad=1.0)
+    assert 4 in without
+
+
 def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
     local = from_states(np.full((40, 60), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     mask = np.zeros((40, 60), bool)
