@@ -13,12 +13,15 @@ difference under that move. A new obstacle in open space stays away from every g
 whatever small move the surrounding walls allow; a removed wall stays free.
 
 :func:`floor_seen_share` checks the other trace a fold leaves: free cells inside a structure
-whose floor around it the robot never saw.
+whose floor around it the robot never saw; :func:`faces_seen_from_behind` a third: free cells
+deep inside a solid structure, bounded by local walls that were seen free on their far side
+too (two faces of one solid wall drawn on one line).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -27,7 +30,7 @@ from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
 from mapserver.grid import box_of_cells, nonzero_cells
-from mapserver.maps import FREE
+from mapserver.maps import FREE, OCCUPIED
 
 BoolArray = NDArray[np.bool_]
 
@@ -230,6 +233,73 @@ def floor_seen_share(
     if not floor.any():
         return 1.0
     return float(np.count_nonzero(local_state[box][floor] == FREE)) / np.count_nonzero(floor)
+
+
+@dataclass(frozen=True)
+class Faces:
+    """The local walls around a removed difference: ``walls`` of them within reach, of which
+    ``seen_behind`` have free cells on their far side; ``depth_m``: how deep inside the
+    building's structure the difference's deepest cell lies (its distance to the nearest cell
+    off every global wall)."""
+
+    walls: int
+    seen_behind: int
+    depth_m: float
+
+    @property
+    def behind_share(self) -> float:
+        return self.seen_behind / self.walls if self.walls else 0.0
+
+
+def faces_seen_from_behind(
+    cells: NDArray[np.intp],
+    global_walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    reach_m: float = 0.4,
+    behind_m: float = 0.2,
+) -> Faces:
+    """The local walls (occupied in ``local_state``) within ``reach_m`` of a removed
+    difference's ``cells`` ((N, 2) row, col), and which of them have a cell seen free within
+    ``behind_m`` behind them: on the line from the difference's nearest cell through the wall,
+    beyond it. With the depth of the cells inside ``global_walls`` (all (H, W), one grid).
+
+    A lidar sees a wall's face from the side it stands on; a solid structure's far face is
+    another line, its thickness away. A local wall line with floor seen free on both sides,
+    where the building has solid structure a metre thick, is two faces drawn on one line: slam
+    laid the pass that saw the far face over the pass that saw the near one (drift), and the
+    free cells inside the structure are that fold, not a removal. A real cut into a solid
+    structure ends on walls with the structure, never seen, behind them.
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    reach = reach_m / resolution
+    steps = max(1, round(behind_m / resolution))
+    box = box_of_cells(rows, cols, math.ceil(reach) + steps + 1, local_state.shape)
+    inside = np.ones((box[0].stop - box[0].start, box[1].stop - box[1].start), np.uint8)
+    r, c = rows - box[0].start, cols - box[1].start
+    inside[r, c] = 0
+    # Each cell's nearest difference cell, by the label OpenCV gives every zero pixel.
+    dist, labels = cv2.distanceTransformWithLabels(
+        inside, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    at = np.zeros((int(labels.max()) + 1, 2), np.intp)
+    at[labels[r, c]] = np.stack([r, c], axis=1)
+    local = local_state[box]
+    wr, wc = np.nonzero((local == OCCUPIED) & (dist <= reach) & (inside > 0))
+    seen = np.zeros(len(wr), bool)
+    if len(wr):
+        nearest = at[labels[wr, wc]]
+        dr, dc = wr - nearest[:, 0], wc - nearest[:, 1]
+        norm = np.maximum(np.hypot(dr, dc), 1e-9)
+        h, w = local.shape
+        for k in range(1, steps + 1):
+            br = np.clip(np.rint(wr + k * dr / norm).astype(np.intp), 0, h - 1)
+            bc = np.clip(np.rint(wc + k * dc / norm).astype(np.intp), 0, w - 1)
+            seen |= local[br, bc] == FREE
+    solid = cv2.distanceTransform(global_walls[box].view(np.uint8), cv2.DIST_L2, 3)
+    depth = float(solid[r, c].max()) * resolution
+    return Faces(len(wr), int(np.count_nonzero(seen)), depth)
 
 
 def _around(

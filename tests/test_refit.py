@@ -11,7 +11,12 @@ import pytest
 
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
-from mapserver.refit import explained_by_refit, floor_seen_share, ghost_of_wall
+from mapserver.refit import (
+    explained_by_refit,
+    faces_seen_from_behind,
+    floor_seen_share,
+    ghost_of_wall,
+)
 
 if TYPE_CHECKING:
     from mapserver.cluster import Difference
@@ -187,6 +192,63 @@ def test_free_cells_inside_a_column_whose_floor_went_unseen_were_laid_there_by_a
     local[47:63, 55:63] = FREE
     share = floor_seen_share(cells(column), glob, local, resolution=RES)
     assert 0.4 < share < 0.6
+
+
+def _band() -> tuple[np.ndarray, np.ndarray]:
+    """A building with a solid wall 1.25 m thick (rows 20-44 at 0.05 m) across an 80 x 80
+    grid, and a local map that saw the floor on both sides of it."""
+    walls = np.zeros((80, 80), bool)
+    walls[20:45] = True
+    local = np.full((80, 80), UNKNOWN, np.uint8)
+    local[:20], local[45:] = FREE, FREE
+    return walls, local
+
+
+def _cells(rows: slice, cols: slice) -> np.ndarray:
+    mask = np.zeros((80, 80), bool)
+    mask[rows, cols] = True
+    return np.stack(nonzero_cells(mask), axis=1)
+
+
+def test_free_cells_in_a_solid_wall_between_faces_seen_from_both_sides_are_a_fold() -> None:
+    """Drift drew the wall's top face on its bottom one (row 44): one line, floor seen free
+    below it, and above it the top pass's floor laid inside the solid wall."""
+    walls, local = _band()
+    local[20:44] = FREE
+    local[44] = OCCUPIED
+    faces = faces_seen_from_behind(
+        _cells(slice(26, 41), slice(10, 70)), walls, local, resolution=0.05
+    )
+    assert faces.walls >= 60 and faces.behind_share > 0.95
+    assert faces.depth_m == pytest.approx(0.6, abs=0.06)  # row 32: 12-13 cells from a face
+
+
+def test_a_cut_into_a_solid_wall_ends_on_a_face_with_the_solid_behind_it() -> None:
+    """The top 0.65 m of the wall removed over 3 m: the robot above saw into the cut, down to
+    its new face (row 33), and nothing behind that face."""
+    walls, local = _band()
+    local[20:33, 20:60] = FREE
+    local[33, 20:60] = OCCUPIED
+    local[20:34, 19] = OCCUPIED
+    local[20:34, 60] = OCCUPIED
+    faces = faces_seen_from_behind(
+        _cells(slice(20, 31), slice(22, 58)), walls, local, resolution=0.05
+    )
+    assert faces.walls >= 40 and faces.behind_share < 0.2
+    assert faces.depth_m >= 0.4
+
+
+def test_a_thin_wall_removed_lies_no_depth_into_the_structure() -> None:
+    """A 0.15 m wall between two rooms, 1 m of it gone: its ends are seen from both rooms,
+    yet the removed cells lie within a cell or two of the floor."""
+    walls = np.zeros((80, 80), bool)
+    walls[40:43] = True
+    local = np.full((80, 80), FREE, np.uint8)
+    local[40:43, :30], local[40:43, 50:] = OCCUPIED, OCCUPIED
+    faces = faces_seen_from_behind(
+        _cells(slice(40, 43), slice(30, 50)), walls, local, resolution=0.05
+    )
+    assert faces.depth_m <= 0.1
 
 
 def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
