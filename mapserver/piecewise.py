@@ -401,13 +401,22 @@ def lands_within(local: OccupancyMap, pieces: Pieces, grid: Grid, margin_m: floa
     return True
 
 
-def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> float:
-    """How far, at most, a trusted piece's transform puts its own cells from where
-    ``transform`` (one rigid fit of the whole local map) puts them, metres; 0 with no trusted
-    piece. Over the corners of each piece's bounding box: the gap between two rigid transforms
-    grows linearly across a region, so its largest is at a corner."""
+def departure(
+    local: OccupancyMap, pieces: Pieces, transform: Transform2D, *, min_score: float = 0.6
+) -> float:
+    """How far, at most, a piece that aligned on its own (scored ``min_score``, in the chain
+    or left out of it) puts its own cells from where ``transform`` (one rigid fit of the whole
+    local map) puts them, metres; 0 with no such piece. Over the corners of each piece's
+    bounding box: the gap between two rigid transforms grows linearly across a region, so its
+    largest is at a corner.
+
+    A piece left out because it disagrees with its neighbour shows a bend as well as one in
+    the chain: the route's last piece turned on by drift past what the chain's agreement
+    allows. Should it be a wrong match instead, aligning in pieces only leaves it out."""
     worst = 0.0
-    for piece in pieces.trusted:
+    for piece in pieces.pieces:
+        if piece.score < min_score:
+            continue
         corners = _corners(local, piece)
         if corners is not None:
             worst = max(worst, float(apart(piece.nav2_from_slam, transform, corners).max()))

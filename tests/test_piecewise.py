@@ -322,9 +322,14 @@ def test_departure_is_how_far_a_piece_moves_its_cells_from_the_whole_fit() -> No
     # Its corner farthest from the pivot (10, 0) is (20, 10), 14.1 m away, turned 3 degrees.
     expected = 2 * math.hypot(10.0, 10.0) * math.sin(math.radians(1.5))
     assert piecewise.departure(local, pieces, identity) == pytest.approx(expected, rel=0.02)
-    untrusted = dataclasses.replace(pieces.pieces[1], trusted=False)
+    # A piece left out of the chain that aligned on its own shows the bend too; one that did
+    # not score shows nothing.
+    left_out = dataclasses.replace(pieces.pieces[1], trusted=False)
+    with_left_out = piecewise.Pieces((pieces.pieces[0], left_out), 100.0)
+    assert piecewise.departure(local, with_left_out, identity) == pytest.approx(expected, rel=0.02)
+    unaligned = dataclasses.replace(left_out, score=0.4)
     assert (
-        piecewise.departure(local, piecewise.Pieces((pieces.pieces[0], untrusted), 100.0), identity)
+        piecewise.departure(local, piecewise.Pieces((pieces.pieces[0], unaligned), 100.0), identity)
         == 0.0
     )
 
