@@ -121,7 +121,7 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
         # Dense points along the run, so that its whole path is a seed, not only its poses.
-        px = np.rint(grid.to_pixel(densify(run, local.resolution))).astype(np.int64)
+        px = np.rint(grid.to_pixel(_densify(run, local.resolution))).astype(np.int64)
         ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         plus[px[ok, 1] // f, px[ok, 0] // f] = i + 1
     if not plus.any():
@@ -154,9 +154,7 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     return labels
 
 
-def densify(run: FloatArray, step_m: float) -> FloatArray:
-    """The polyline ``run`` (N, 2) with points added so that none is more than ``step_m`` from
-    the next."""
+def _densify(run: FloatArray, step_m: float) -> FloatArray:
     if len(run) < 2:
         return run
     out = [run[:1]]
@@ -165,6 +163,18 @@ def densify(run: FloatArray, step_m: float) -> FloatArray:
         t = np.arange(1, k + 1)[:, None] / k
         out.append(a + t * (b - a))
     return np.concatenate(out)
+
+
+def along_route(route: FloatArray, step_m: float) -> FloatArray:
+    """Points every ``step_m`` of path along the polyline ``route`` (N, 2), its start first:
+    the route weighted by the ground it covered, not by the time the robot spent (poses
+    recorded while it stood still collapse into one point). One point when it never moved."""
+    route = np.asarray(route, dtype=float).reshape(-1, 2)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(route, axis=0).T))])
+    if len(route) < 2 or s[-1] <= 0.0:
+        return route[:1]
+    at = np.arange(0.0, s[-1] + 1e-9, step_m)
+    return np.stack([np.interp(at, s, route[:, 0]), np.interp(at, s, route[:, 1])], axis=1)
 
 
 def _sub_map(local: OccupancyMap, mask: NDArray[np.bool_]) -> OccupancyMap:
@@ -279,12 +289,14 @@ _MAX_TURN_RAD = math.radians(5.0)
 
 
 def heading_trend(chain: Sequence[Piece], at: int) -> float:
-    """The heading (radians) the chain's pieces (consecutive on the route, ``chain[-1]`` the
-    end it grows from) predict for the piece at route index ``at``: the end's, turned on by
-    the chain's drift per piece (least squares over its last three pieces; none with one)."""
+    """The heading (radians) the chain's pieces (in route order along the growth, ``chain[-1]``
+    the end it grows from; a piece stepped over leaves a gap in their indices) predict for the
+    piece at route index ``at``: the end's, turned on by the chain's drift per route index
+    (least squares over its last three pieces; none with fewer: two pieces' fits, each a
+    degree or so off, give a slope that noisy)."""
     last = chain[-3:]
     end = last[-1]
-    if len(last) < 2:
+    if len(last) < 3:
         return end.nav2_from_slam.theta
     x = np.array([p.index for p in last], float)
     y = np.unwrap([p.nav2_from_slam.theta for p in last])
@@ -598,10 +610,11 @@ def unfit_tiles(
 
 def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
     """The one rigid transform that best carries the robot's route onto the building (least
-    squares over the route, a point every 0.1 m): what ``result.yaml`` reports as the
+    squares over the route, a point every 0.1 m of path): what ``result.yaml`` reports as the
     alignment. Each trusted piece carries its own run; a piece left out carries its run as the
-    trusted piece nearest it along the route does (the best the pieces know of it). None when
-    no piece is trusted."""
+    trusted piece nearest it along the route does (the best the pieces know of it; of two as
+    near, the later one, nearer where the robot reported its pose). None when no piece is
+    trusted."""
     by_index = {p.index: p for p in pieces.pieces}
     trusted = [p.index for p in pieces.trusted]
     if not trusted:
@@ -609,7 +622,7 @@ def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
     src, dst = [], []
     for piece in pieces.pieces:
         nearest = min(trusted, key=lambda j: (abs(j - piece.index), -j))
-        xy = densify(piece.run, 0.1)
+        xy = along_route(piece.run, 0.1)
         src.append(xy)
         dst.append(by_index[nearest].nav2_from_slam.apply(xy))
     xy = np.concatenate(src)
@@ -622,10 +635,10 @@ __all__ = [
     "Piece",
     "Pieces",
     "align_pieces",
+    "along_route",
     "another_pass_explains",
     "apart",
     "compose",
-    "densify",
     "departure",
     "fit_rigid",
     "grow_chain",

@@ -535,14 +535,20 @@ _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
 # building's structure (a wall or block 0.8 m thick or more), most of whose bounding local
-# walls (_FOLD_BEHIND_SHARE of at least _FOLD_MIN_WALLS within 0.4 m) were seen free on their
+# walls (_FOLD_BEHIND_SHARE of at least _FOLD_MIN_WALL_M of wall cells, counted as cells times
+# the resolution, within 0.4 m) were seen free on their
 # far side too: two faces of the solid drawn on one line, the free cells between them another
 # pass's floor (refit.faces_seen_from_behind). Over the six drift sets and gen99, gen7,
 # wander11, wander31, fp21 and mis777 (the bundles this check runs on), 4 of the 20 false
 # removals left after the other checks, and none of the 138 real ones.
 _FOLD_DEPTH_M = 0.4
 _FOLD_BEHIND_SHARE = 0.6
-_FOLD_MIN_WALLS = 20
+_FOLD_MIN_WALL_M = 1.0
+
+
+# The route carries the reported transform when it spreads this far (metres, the largest
+# distance of a point from their mean); a robot that barely moved says nothing of rotation.
+_ROUTE_SPREAD_M = 2.0
 
 
 def _rigid_of_warp(
@@ -552,12 +558,17 @@ def _rigid_of_warp(
     route_slam: np.ndarray | None = None,
 ) -> Transform2D:
     """The rigid transform closest to ``transform`` plus the drift correction along the robot's
-    route (``route_slam`` (N, 2), a point every 0.1 m), or over the local walls (one point per
-    0.25 m) without one: the transform that best carries the route the robot drove onto the
-    building, where the alignment's own fit leans to the part whose walls carried it."""
+    route (``route_slam`` (N, 2), a point every 0.1 m of path; when it spreads
+    ``_ROUTE_SPREAD_M`` or more), else over the local walls (one point per 0.25 m): the
+    transform that best carries the route the robot drove onto the building, where the
+    alignment's own fit leans to the part whose walls carried it."""
+    points = np.zeros((0, 2))
     if route_slam is not None and len(route_slam) >= 2:
-        points = piecewise.densify(route_slam, 0.1)
-    else:
+        points = piecewise.along_route(route_slam, 0.1)
+        spread = float(np.hypot(*(points - points.mean(axis=0)).T).max())
+        if spread < _ROUTE_SPREAD_M:
+            points = np.zeros((0, 2))
+    if len(points) == 0:
         points = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), 0.25)
     if len(points) < 3:
         return transform
@@ -611,7 +622,7 @@ def _refit(
             )
             if (
                 faces.depth_m >= _FOLD_DEPTH_M
-                and faces.walls >= _FOLD_MIN_WALLS
+                and faces.walls * grid.resolution >= _FOLD_MIN_WALL_M
                 and faces.behind_share >= _FOLD_BEHIND_SHARE
             ):
                 return True

@@ -294,11 +294,15 @@ def faces_seen_from_behind(
         norm = np.maximum(np.hypot(dr, dc), 1e-9)
         h, w = local.shape
         for k in range(1, steps + 1):
-            br = np.clip(np.rint(wr + k * dr / norm).astype(np.intp), 0, h - 1)
-            bc = np.clip(np.rint(wc + k * dc / norm).astype(np.intp), 0, w - 1)
-            seen |= local[br, bc] == FREE
+            br = np.rint(wr + k * dr / norm).astype(np.intp)
+            bc = np.rint(wc + k * dc / norm).astype(np.intp)
+            on = (br >= 0) & (br < h) & (bc >= 0) & (bc < w)  # off the map: nothing seen
+            seen[on] |= local[br[on], bc[on]] == FREE
+    # Within the box's margin the distance is exact; beyond it (no cell off the walls in the
+    # box) it is the margin: deeper than anything asked of it.
+    margin_m = (math.ceil(reach) + steps + 1) * resolution
     solid = cv2.distanceTransform(global_walls[box].view(np.uint8), cv2.DIST_L2, 3)
-    depth = float(solid[r, c].max()) * resolution
+    depth = min(float(solid[r, c].max()) * resolution, margin_m)
     return Faces(len(wr), int(np.count_nonzero(seen)), depth)
 
 

@@ -348,6 +348,12 @@ def test_the_transform_reported_after_a_drift_correction_follows_the_robot_s_rou
     assert (got.theta, got.tx, got.ty) == pytest.approx((0.0, 0.0, 0.0), abs=1e-6)
     walls = _rigid_of_warp(local, t, east)
     assert walls.apply(np.array([[10.0, 6.0]]))[0, 1] > 6.05
+    # A robot that barely moved says nothing of rotation: the walls carry the fit then (all
+    # its poses in one place gave a fit turned back to 0 degrees).
+    turned = Transform2D(0.3, 0.0, 0.0)
+    still = _rigid_of_warp(local, turned, east, np.array([[1.0, 1.0]] * 3))
+    assert still.theta == pytest.approx(_rigid_of_warp(local, turned, east).theta)
+    assert abs(still.theta - 0.3) < 0.05
 
 
 def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() -> None:

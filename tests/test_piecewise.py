@@ -476,6 +476,49 @@ def test_a_piece_turned_off_the_chain_s_drift_does_not_join_it() -> None:
     assert 4 in without
 
 
+def test_growing_backwards_a_piece_turned_off_the_trend_is_stepped_over() -> None:
+    """The same drifting route grown backwards from the chain {2, 3, 4, 5}: piece 1, a wrong
+    match turned 5.5 degrees the other way about its run's end (where it meets piece 2), is
+    stepped over; piece 0, on the trend, joins across it."""
+
+    def run(i: int) -> np.ndarray:
+        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
+
+    def piece(i: int, t: Transform2D) -> piecewise.Piece:
+        mask = np.zeros((2, 2), bool)
+        return piecewise.Piece(i, mask, t, 0.9, True, 100.0, (20.0 * i, 0.0), run(i))
+
+    drifted = [Transform2D(0.0, 0.0, 0.0)]
+    for i in range(1, 6):
+        drifted.append(drifted[-1].compose(_turn_about((20.0 * i, 0.0), 1.5)))
+    # Piece 1 meets piece 2 at (40, 0); turned about that point from piece 2's transform.
+    wrong = drifted[2].compose(_turn_about((40.0, 0.0), -1.5 - 5.5))
+    refits = {1: piece(1, wrong), 0: piece(0, drifted[0])}
+    pivots: dict[int, int] = {}
+
+    def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
+        pivots[i] = pivot_at
+        return refits[i]
+
+    pieces = [refits[0], refits[1]] + [piece(i, drifted[i]) for i in range(2, 6)]
+    chain_back = [pieces[4], pieces[3], pieces[2]]  # growth order going back: the end last
+    assert piecewise.heading_trend(chain_back, 1) == pytest.approx(math.radians(1.5))
+    assert piecewise.apart(wrong, drifted[2], np.array([[40.0, 0.0]]))[0] < 1e-9
+    _, chain = piecewise.grow_chain(pieces, {2, 3, 4, 5}, fit, agree_m=0.5)
+    assert chain == {0, 2, 3, 4, 5} and pivots == {1: -1, 0: -1}
+    _, without = piecewise.grow_chain(pieces, {2, 3, 4, 5}, fit, agree_m=0.5, max_turn_rad=1.0)
+    assert 1 in without
+
+
+def test_the_route_counts_by_the_ground_it_covered_not_the_time_spent() -> None:
+    """Poses recorded while the robot stood still at the start collapse into one point: the
+    route 0-10 m east, sampled every 2.5 m of path, is 5 points whatever the pauses."""
+    parked = np.array([[0.0, 0.0]] * 50 + [[5.0, 0.0], [10.0, 0.0]])
+    pts = piecewise.along_route(parked, 2.5)
+    assert pts[:, 0] == pytest.approx([0.0, 2.5, 5.0, 7.5, 10.0])
+    assert piecewise.along_route(np.array([[1.0, 2.0]] * 3), 0.1).tolist() == [[1.0, 2.0]]
+
+
 def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
     local = from_states(np.full((40, 60), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     mask = np.zeros((40, 60), bool)
