@@ -608,7 +608,7 @@ def unfit_tiles(
     return unfit
 
 
-def fit_rigid(local: OccupancyMap, pieces: Pieces) -> Transform2D | None:
+def fit_rigid(pieces: Pieces) -> Transform2D | None:
     """The one rigid transform that best carries the robot's route onto the building (least
     squares over the route, a point every 0.1 m of path): what ``result.yaml`` reports as the
     alignment. Each trusted piece carries its own run; a piece left out carries its run as the

@@ -995,7 +995,7 @@ def _aligned(
     reported."""
     warnings: list[str] = []
     if pieces is not None and warped.in_pieces:
-        transform = piecewise.fit_rigid(local, pieces) or transform
+        transform = piecewise.fit_rigid(pieces) or transform
         left = len(pieces.pieces) - len(pieces.trusted)
         warnings.append(
             f"the local map was aligned in {len(pieces.pieces)} pieces along the route (no one "

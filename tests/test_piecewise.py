@@ -341,7 +341,6 @@ def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
     run carried as its nearest trusted piece carries it: the wrong match weighs nothing, and
     the fit lies between the two trusted transforms, nearer the one that carries two runs."""
     mask = np.zeros((2, 2), bool)
-    local = from_states(np.full((2, 2), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     runs = [np.array([[20.0 * i, 0.0], [20.0 * i + 20.0, 0.0]]) for i in range(3)]
     moves = [Transform2D(0.0, 0.0, 0.0), Transform2D(0.0, 0.0, 0.3), Transform2D(0.5, 5.0, 5.0)]
     pieces = piecewise.Pieces(
@@ -351,7 +350,7 @@ def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
         ),
         300.0,
     )
-    got = piecewise.fit_rigid(local, pieces)
+    got = piecewise.fit_rigid(pieces)
     assert got is not None
     # Each run carried as a straight line (a third at y 0, two thirds at y 0.3) is fitted by
     # a small turn; the mean of the carried points moves two thirds of the way north.
@@ -360,7 +359,7 @@ def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
     assert abs(got.theta) < math.radians(1.0) and abs(mid[0] - 30.0) < 0.01
     # With no piece trusted there is nothing to report.
     none = piecewise.Pieces(tuple(dataclasses.replace(p, trusted=False) for p in pieces.pieces), 1)
-    assert piecewise.fit_rigid(local, none) is None
+    assert piecewise.fit_rigid(none) is None
 
 
 def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
