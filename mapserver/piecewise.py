@@ -608,23 +608,45 @@ def unfit_tiles(
     return unfit
 
 
+def carrier(pieces: Pieces, index: int) -> Transform2D | None:
+    """The transform that carries piece ``index``'s run: its own when it is trusted, else
+    that of the trusted piece nearest it along the route (the best the pieces know of it; of
+    two as near, the later one, nearer where the robot reported its pose). None when no piece
+    is trusted."""
+    trusted = {p.index: p for p in pieces.trusted}
+    if not trusted:
+        return None
+    nearest = min(trusted, key=lambda j: (abs(j - index), -j))
+    return trusted[nearest].nav2_from_slam
+
+
+def route_nav2(pieces: Pieces) -> FloatArray | None:
+    """The robot's route (N, 2) in the nav2 frame, each piece's run carried by its
+    :func:`carrier` (the runs share their junctions; each after the first drops its first
+    point): where the robot drove on the building, where one rigid transform of a bent map
+    draws it through walls. None when no piece is trusted."""
+    runs = []
+    for k, piece in enumerate(pieces.pieces):
+        t = carrier(pieces, piece.index)
+        if t is None:
+            return None
+        runs.append(t.apply(piece.run[1:] if k else piece.run))
+    return np.concatenate(runs) if runs else None
+
+
 def fit_rigid(pieces: Pieces) -> Transform2D | None:
     """The one rigid transform that best carries the robot's route onto the building (least
     squares over the route, a point every 0.1 m of path): what ``result.yaml`` reports as the
-    alignment. Each trusted piece carries its own run; a piece left out carries its run as the
-    trusted piece nearest it along the route does (the best the pieces know of it; of two as
-    near, the later one, nearer where the robot reported its pose). None when no piece is
+    alignment. Each piece's run is carried by its :func:`carrier`. None when no piece is
     trusted."""
-    by_index = {p.index: p for p in pieces.pieces}
-    trusted = [p.index for p in pieces.trusted]
-    if not trusted:
-        return None
     src, dst = [], []
     for piece in pieces.pieces:
-        nearest = min(trusted, key=lambda j: (abs(j - piece.index), -j))
+        t = carrier(pieces, piece.index)
+        if t is None:
+            return None
         xy = along_route(piece.run, 0.1)
         src.append(xy)
-        dst.append(by_index[nearest].nav2_from_slam.apply(xy))
+        dst.append(t.apply(xy))
     xy = np.concatenate(src)
     if len(xy) < 3:
         return pieces.trusted[0].nav2_from_slam
@@ -638,6 +660,7 @@ __all__ = [
     "along_route",
     "another_pass_explains",
     "apart",
+    "carrier",
     "compose",
     "departure",
     "fit_rigid",
@@ -646,6 +669,7 @@ __all__ = [
     "label_cells",
     "lands_within",
     "largest_chain",
+    "route_nav2",
     "route_pieces",
     "unfit_tiles",
 ]

@@ -1352,11 +1352,20 @@ def process_bundle(
     if aligned.drift_m >= _REPORT_WARP_M:  # as large as the report names the warp
         log.info("%s: drift corrected, up to %.2f m", bundle_id, aligned.drift_m)
     grid, local_state = aligned.view.grid, aligned.local_state
-    route_xy = _route_nav2(files, aligned.transform)  # the trajectory ROI and the overlay draw it
+    # The route the trajectory ROI and the overlay draw, and the transform that puts the robot
+    # where box and heading ROIs start: aligned in pieces, each run carried by its own piece.
+    robot_from, route_xy = aligned.transform, None
+    if aligned.in_pieces and aligned.pieces is not None:
+        route_xy = piecewise.route_nav2(aligned.pieces)
+        robot_from = (
+            piecewise.carrier(aligned.pieces, aligned.pieces.pieces[-1].index) or robot_from
+        )
+    if route_xy is None:
+        route_xy = _route_nav2(files, aligned.transform)
 
     region = stages.run(
         "roi",
-        partial(_make_roi, config, files, aligned.transform, route_xy, local_state, grid, warnings),
+        partial(_make_roi, config, files, robot_from, route_xy, local_state, grid, warnings),
     )
     masks, evidence = stages.run("diff", partial(_diff, aligned, region.mask, inputs, config))
     # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are

@@ -362,6 +362,35 @@ def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
     assert piecewise.fit_rigid(none) is None
 
 
+def test_the_route_is_drawn_where_each_piece_carries_its_run() -> None:
+    """Four pieces of a route east along y = 0: pieces 1 and 3 trusted (3 moved 0.4 m north),
+    0 and 2 left out. Piece 0 is carried as piece 1 (its nearest), piece 2, as near to 1 as to
+    3, as the later one, 3 (nearer where the robot reported its pose); the runs' shared
+    junctions appear once."""
+    mask = np.zeros((2, 2), bool)
+    runs = [
+        np.array([[10.0 * i, 0.0], [10.0 * i + 5.0, 0.0], [10.0 * i + 10.0, 0.0]]) for i in range(4)
+    ]
+    moves = {1: Transform2D(0.0, 0.0, 0.0), 3: Transform2D(0.0, 0.0, 0.4)}
+    wrong = Transform2D(0.3, 5.0, -5.0)
+    pieces = piecewise.Pieces(
+        tuple(
+            piecewise.Piece(
+                i, mask, moves.get(i, wrong), 0.9, i in moves, 50.0, (10.0 * i, 0.0), runs[i]
+            )
+            for i in range(4)
+        ),
+        200.0,
+    )
+    assert piecewise.carrier(pieces, 0) == moves[1] and piecewise.carrier(pieces, 2) == moves[3]
+    route = piecewise.route_nav2(pieces)
+    assert route is not None and len(route) == 9  # 4 runs of 3 points, 3 junctions shared
+    assert route[:, 0] == pytest.approx(np.arange(0.0, 41.0, 5.0))
+    assert route[:, 1] == pytest.approx([0.0] * 5 + [0.4] * 4)
+    none = piecewise.Pieces(tuple(dataclasses.replace(p, trusted=False) for p in pieces.pieces), 1)
+    assert piecewise.route_nav2(none) is None and piecewise.carrier(none, 0) is None
+
+
 def test_a_map_compared_in_pieces_reports_the_drift_its_pieces_corrected(tmp_path: Path) -> None:
     """Each trusted piece gets its own drift correction; ``alignment.drift_m`` is the largest of
     them (it said 0 for every bundle aligned in pieces)."""
