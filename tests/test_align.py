@@ -19,7 +19,7 @@ from mapserver.align import (
     structure_mask,
     thin_points,
 )
-from mapserver.geometry import Transform2D, wrap_angle
+from mapserver.geometry import Transform2D, fit_rigid, wrap_angle
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
@@ -180,8 +180,8 @@ def _icp_one(
     max_distance_m: float,
     iterations: int = 30,
 ) -> Transform2D:
-    """Point-to-point ICP from one start, written plainly: the pairs within the shrinking limit,
-    their centroids, the rotation from their cross-covariance."""
+    """Point-to-point ICP from one start, written plainly: the pairs within the shrinking limit
+    and their least-squares rigid fit (:func:`mapserver.geometry.fit_rigid`)."""
     t = start
     for k in range(iterations):
         limit = max_distance_m * (1.0 - 0.66 * k / (iterations - 1))
@@ -190,12 +190,7 @@ def _icp_one(
         use = (wx - q[:, 0]) ** 2 + (wy - q[:, 1]) ** 2 <= limit**2
         if use.sum() < 10:
             break
-        src, dst = points[use], np.stack([wx[use], wy[use]], axis=1)
-        ms, md = src.mean(axis=0), dst.mean(axis=0)
-        u, v = src - ms, dst - md
-        theta = math.atan2((u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum(), (u * v).sum())
-        c, s = math.cos(theta), math.sin(theta)
-        new = Transform2D(theta, md[0] - (c * ms[0] - s * ms[1]), md[1] - (s * ms[0] + c * ms[1]))
+        new = fit_rigid(points[use], np.stack([wx[use], wy[use]], axis=1))
         step = math.hypot(new.tx - t.tx, new.ty - t.ty)
         t = new
         if step < 1e-4 and k > 5:

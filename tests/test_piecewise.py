@@ -423,20 +423,30 @@ def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior
     assert piecewise.largest_chain([_piece(0, 0.0, score_ok=False)], agree_m=0.5) == set()
 
 
+def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
+    """Piece ``i`` of a straight route east along y = 0, 20 m each (its run's start, middle and
+    end), carried by ``t``; one left out scores 0.3."""
+    run = np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
+    mask = np.zeros((2, 2), bool)
+    return piecewise.Piece(
+        i, mask, t, 0.9 if trusted else 0.3, trusted, 100.0, (20.0 * i, 0.0), run
+    )
+
+
+def _drifted(n: int, deg: float) -> list[Transform2D]:
+    """The transforms of ``n`` pieces of that route whose drift turns each one ``deg`` more
+    than the last, about where it meets the one before (so neighbours meet exactly)."""
+    drifted = [Transform2D(0.0, 0.0, 0.0)]
+    for i in range(1, n):
+        drifted.append(drifted[-1].compose(_turn_about((20.0 * i, 0.0), deg)))
+    return drifted
+
+
 def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
     """Pieces 2 and 3 are the chain. Aligned again from 2, piece 1 agrees and joins; 0 does
     not. Beyond 3: 4 does not score and is stepped over; 5, turned 3 degrees about the middle
     of 4's run, meets 3 there (10 m from where 5 starts, 0.52 m apart) and joins; 6 and 7 do
     not join, which ends the growth before 8 (which would) is aligned at all."""
-
-    def run(i: int) -> np.ndarray:
-        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
-
-    def piece(i: int, t: Transform2D, trusted: bool) -> piecewise.Piece:
-        mask = np.zeros((2, 2), bool)
-        return piecewise.Piece(
-            i, mask, t, 0.9 if trusted else 0.3, trusted, 100.0, (20.0 * i, 0.0), run(i)
-        )
 
     still = Transform2D(0.0, 0.0, 0.0)
     refits = {
@@ -454,11 +464,11 @@ def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
 
     def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
         starts[i], pivots[i] = start, pivot_at
-        return piece(i, *refits[i])
+        return _on_route(i, *refits[i])
 
     # As first aligned: all but the chain took wrong matches from a wrong start.
-    pieces = [piece(i, Transform2D(0.0, 3.0, 0.0), True) for i in range(9)]
-    pieces[2], pieces[3] = piece(2, still, True), piece(3, still, True)
+    pieces = [_on_route(i, Transform2D(0.0, 3.0, 0.0)) for i in range(9)]
+    pieces[2], pieces[3] = _on_route(2, still), _on_route(3, still)
     grown, chain = piecewise.grow_chain(pieces, {2, 3}, fit, agree_m=0.5)
     assert chain == {1, 2, 3, 5}
     assert sorted(starts) == [0, 1, 4, 5, 6, 7]
@@ -479,23 +489,14 @@ def test_a_piece_turned_off_the_chain_s_drift_does_not_join_it() -> None:
     drift predicts for it, and is stepped over; piece 5, on the trend, joins across it.
     Without the heading rule, piece 4 joins."""
 
-    def run(i: int) -> np.ndarray:
-        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
-
-    def piece(i: int, t: Transform2D) -> piecewise.Piece:
-        mask = np.zeros((2, 2), bool)
-        return piecewise.Piece(i, mask, t, 0.9, True, 100.0, (20.0 * i, 0.0), run(i))
-
-    drifted = [Transform2D(0.0, 0.0, 0.0)]
-    for i in range(1, 6):  # each turned on 1.5 degrees about its start
-        drifted.append(drifted[-1].compose(_turn_about((20.0 * i, 0.0), 1.5)))
+    drifted = _drifted(6, 1.5)
     wrong = drifted[3].compose(_turn_about((80.0, 0.0), -5.5))
-    refits = {4: piece(4, wrong), 5: piece(5, drifted[5])}
+    refits = {4: _on_route(4, wrong), 5: _on_route(5, drifted[5])}
 
     def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
         return refits[i]
 
-    pieces = [piece(i, drifted[i]) for i in range(4)] + [refits[4], refits[5]]
+    pieces = [_on_route(i, drifted[i]) for i in range(4)] + [refits[4], refits[5]]
     assert piecewise.heading_trend(pieces[:4], 4) == pytest.approx(math.radians(6.0))
     assert piecewise.apart(wrong, drifted[3], np.array([[80.0, 0.0]]))[0] < 1e-9
     _, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
@@ -509,26 +510,17 @@ def test_growing_backwards_a_piece_turned_off_the_trend_is_stepped_over() -> Non
     match turned 5.5 degrees the other way about its run's end (where it meets piece 2), is
     stepped over; piece 0, on the trend, joins across it."""
 
-    def run(i: int) -> np.ndarray:
-        return np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
-
-    def piece(i: int, t: Transform2D) -> piecewise.Piece:
-        mask = np.zeros((2, 2), bool)
-        return piecewise.Piece(i, mask, t, 0.9, True, 100.0, (20.0 * i, 0.0), run(i))
-
-    drifted = [Transform2D(0.0, 0.0, 0.0)]
-    for i in range(1, 6):
-        drifted.append(drifted[-1].compose(_turn_about((20.0 * i, 0.0), 1.5)))
+    drifted = _drifted(6, 1.5)
     # Piece 1 meets piece 2 at (40, 0); turned about that point from piece 2's transform.
     wrong = drifted[2].compose(_turn_about((40.0, 0.0), -1.5 - 5.5))
-    refits = {1: piece(1, wrong), 0: piece(0, drifted[0])}
+    refits = {1: _on_route(1, wrong), 0: _on_route(0, drifted[0])}
     pivots: dict[int, int] = {}
 
     def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
         pivots[i] = pivot_at
         return refits[i]
 
-    pieces = [refits[0], refits[1]] + [piece(i, drifted[i]) for i in range(2, 6)]
+    pieces = [refits[0], refits[1]] + [_on_route(i, drifted[i]) for i in range(2, 6)]
     chain_back = [pieces[4], pieces[3], pieces[2]]  # growth order going back: the end last
     assert piecewise.heading_trend(chain_back, 1) == pytest.approx(math.radians(1.5))
     assert piecewise.apart(wrong, drifted[2], np.array([[40.0, 0.0]]))[0] < 1e-9
