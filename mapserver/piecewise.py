@@ -332,8 +332,6 @@ def grow_chain(
     chain = set(chain)
     for step in (-1, 1):
         end = min(chain) if step < 0 else max(chain)
-        # The chain's pieces in growth order, its end last.
-        grown = [out[j] for j in sorted(chain, reverse=step < 0)]
         over: list[int] = []
         i = end + step
         while 0 <= i < len(out) and len(over) < 2:
@@ -344,11 +342,12 @@ def grow_chain(
             else:  # where the later of the two starts
                 at = np.array([out[max(i, end)].junction])
             gap = float(apart(piece.nav2_from_slam, out[end].nav2_from_slam, at)[0])
+            # The chain's pieces in growth order, its end last.
+            grown = [out[j] for j in sorted(chain, reverse=step < 0)]
             turn = abs(wrap_angle(piece.nav2_from_slam.theta - heading_trend(grown, i)))
             if piece.trusted and gap <= agree_m and turn <= max_turn_rad:
                 out[i], end, over = piece, i, []
                 chain.add(i)
-                grown.append(piece)
             else:
                 over.append(i)
             i += step
@@ -613,11 +612,21 @@ def carrier(pieces: Pieces, index: int) -> Transform2D | None:
     that of the trusted piece nearest it along the route (the best the pieces know of it; of
     two as near, the later one, nearer where the robot reported its pose). None when no piece
     is trusted."""
-    trusted = {p.index: p for p in pieces.trusted}
+    trusted = pieces.trusted
+    return _nearest(trusted, index).nav2_from_slam if trusted else None
+
+
+def _nearest(trusted: Sequence[Piece], index: int) -> Piece:
+    return min(trusted, key=lambda p: (abs(p.index - index), -p.index))
+
+
+def _carried_runs(pieces: Pieces) -> list[tuple[FloatArray, Transform2D]] | None:
+    """Each piece's run with its :func:`carrier`, in route order; None when no piece is
+    trusted."""
+    trusted = pieces.trusted
     if not trusted:
         return None
-    nearest = min(trusted, key=lambda j: (abs(j - index), -j))
-    return trusted[nearest].nav2_from_slam
+    return [(p.run, _nearest(trusted, p.index).nav2_from_slam) for p in pieces.pieces]
 
 
 def route_nav2(pieces: Pieces) -> FloatArray | None:
@@ -625,13 +634,10 @@ def route_nav2(pieces: Pieces) -> FloatArray | None:
     :func:`carrier` (the runs share their junctions; each after the first drops its first
     point): where the robot drove on the building, where one rigid transform of a bent map
     draws it through walls. None when no piece is trusted."""
-    runs = []
-    for k, piece in enumerate(pieces.pieces):
-        t = carrier(pieces, piece.index)
-        if t is None:
-            return None
-        runs.append(t.apply(piece.run[1:] if k else piece.run))
-    return np.concatenate(runs) if runs else None
+    carried = _carried_runs(pieces)
+    if carried is None:
+        return None
+    return np.concatenate([t.apply(run[1:] if k else run) for k, (run, t) in enumerate(carried)])
 
 
 def fit_rigid(pieces: Pieces) -> Transform2D | None:
@@ -639,18 +645,15 @@ def fit_rigid(pieces: Pieces) -> Transform2D | None:
     squares over the route, a point every 0.1 m of path): what ``result.yaml`` reports as the
     alignment. Each piece's run is carried by its :func:`carrier`. None when no piece is
     trusted."""
-    src, dst = [], []
-    for piece in pieces.pieces:
-        t = carrier(pieces, piece.index)
-        if t is None:
-            return None
-        xy = along_route(piece.run, 0.1)
-        src.append(xy)
-        dst.append(t.apply(xy))
+    carried = _carried_runs(pieces)
+    if carried is None:
+        return None
+    src = [along_route(run, 0.1) for run, _ in carried]
     xy = np.concatenate(src)
     if len(xy) < 3:
         return pieces.trusted[0].nav2_from_slam
-    return fit_rigid_points(xy, np.concatenate(dst))
+    dst = np.concatenate([t.apply(p) for p, (_, t) in zip(src, carried, strict=True)])
+    return fit_rigid_points(xy, dst)
 
 
 __all__ = [
