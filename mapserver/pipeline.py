@@ -166,6 +166,7 @@ class _Inputs:
     files: BundleFiles
     local: OccupancyMap
     global_map: OccupancyMap
+    route_slam: np.ndarray | None  # the robot's route (N, 2), slam frame; None without one
 
 
 def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inputs:
@@ -218,7 +219,7 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
         )
     if not (local.state != UNKNOWN).any():
         raise BundleError("the local map has no known cells", file=files.slam_image)
-    return _Inputs(files, local, global_map)
+    return _Inputs(files, local, global_map, _route_slam(files))
 
 
 def _route_slam(files: BundleFiles) -> np.ndarray | None:
@@ -229,11 +230,6 @@ def _route_slam(files: BundleFiles) -> np.ndarray | None:
     return np.array([[p.x, p.y] for p in poses])
 
 
-def _route_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> np.ndarray | None:
-    route = _route_slam(files)
-    return None if route is None else nav2_from_slam.apply(route)
-
-
 def _robot_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> Pose2D:
     slam = files.manifest.pose.slam.to_pose()
     x, y = nav2_from_slam.apply(np.array([slam.x, slam.y]))
@@ -241,8 +237,7 @@ def _robot_nav2(files: BundleFiles, nav2_from_slam: Transform2D) -> Pose2D:
 
 
 def _align_in_pieces(
-    files: BundleFiles,
-    local: OccupancyMap,
+    inputs: _Inputs,
     view: align_stage.GlobalView,
     also_from: Transform2D | None,
     config: Config,
@@ -257,10 +252,9 @@ def _align_in_pieces(
     scores, and puts the robot within ``jump_m`` of where the prior does.
     """
     a = config.pipeline.align
-    poses = files.manifest.trajectory_poses()
-    if not a.pieces or not a.refine or len(poses) < 2:
+    files, local, route = inputs.files, inputs.local, inputs.route_slam
+    if not a.pieces or not a.refine or route is None or len(route) < 2:
         return None
-    route = np.array([[p.x, p.y] for p in poses])
     if float(np.hypot(*np.diff(route, axis=0).T).sum()) < 1.5 * a.piece_m:
         return None
     # The prior is right where the robot was when it reported its pose (the route's end, where
@@ -562,13 +556,10 @@ def _rigid_of_warp(
     ``_ROUTE_SPREAD_M`` or more), else over the local walls (one point per 0.25 m): the
     transform that best carries the route the robot drove onto the building, where the
     alignment's own fit leans to the part whose walls carried it."""
-    points = np.zeros((0, 2))
+    points = None
     if route_slam is not None and len(route_slam) >= 2:
         points = piecewise.along_route(route_slam, 0.1)
-        spread = float(np.hypot(*(points - points.mean(axis=0)).T).max())
-        if spread < _ROUTE_SPREAD_M:
-            points = np.zeros((0, 2))
-    if len(points) == 0:
+    if points is None or np.hypot(*(points - points.mean(axis=0)).T).max() < _ROUTE_SPREAD_M:
         points = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), 0.25)
     if len(points) < 3:
         return transform
@@ -797,9 +788,7 @@ def _align(
 
     def prior_confirmed(narrow_best: Transform2D) -> bool:
         def aligned_on(view: align_stage.GlobalView) -> piecewise.Pieces | None:
-            return _align_in_pieces(
-                inputs.files, local, view, narrow_best, config, confirm_prior=True
-            )
+            return _align_in_pieces(inputs, view, narrow_best, config, confirm_prior=True)
 
         narrow_view = built[narrow]
         found = stages.run("pieces", partial(aligned_on, narrow_view))
@@ -1311,11 +1300,11 @@ def process_bundle(
     warnings += alignment.warnings
     # The pieces, when they are wanted below, start from the whole map's fit too.
     whole_fit = alignment.nav2_from_slam if alignment.refined else None
-    in_pieces = partial(_align_in_pieces, files, local, search_view, whole_fit, config)
+    in_pieces = partial(_align_in_pieces, inputs, search_view, whole_fit, config)
     if pieces is None and not alignment.trusted and settings.align.pieces:
         pieces = stages.run("pieces", in_pieces)
     warped = stages.run("warp", partial(_warp, local, search_view, alignment, pieces, config))
-    transform = _reported_transform(local, alignment, warped, _route_slam(files))
+    transform = _reported_transform(local, alignment, warped, inputs.route_slam)
     misfit_m = settings.diff.max_misfit_tolerance_m
     unfit = None
     # Every bundle with fit_check; else only a drifting one (a kink beyond the warp leaves a
@@ -1360,8 +1349,8 @@ def process_bundle(
         robot_from = (
             piecewise.carrier(aligned.pieces, aligned.pieces.pieces[-1].index) or robot_from
         )
-    if route_xy is None:
-        route_xy = _route_nav2(files, aligned.transform)
+    if route_xy is None and inputs.route_slam is not None:
+        route_xy = aligned.transform.apply(inputs.route_slam)
 
     region = stages.run(
         "roi",
