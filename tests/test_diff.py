@@ -25,12 +25,17 @@ from mapserver.diff import (
     filter_noise,
     misfit_tolerance,
     raw_differences,
+    removal_evidence,
 )
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 RES = 0.05
+
+
+# removal_evidence's arguments in the tests of its both-sides rule.
+_SEEN_BOTH_SIDES = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
 
 
 def _maps(shape: tuple[int, int] = (100, 100)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -226,8 +231,6 @@ def test_warp_with_drift_moves_walls_by_the_shift() -> None:
 
 
 def test_removal_evidence_rejects_an_eroded_wall_face_and_keeps_a_wall_seen_through() -> None:
-    from mapserver.diff import removal_evidence
-
     g = np.full((40, 40), FREE, np.uint8)
     g[10:30, 16:22] = OCCUPIED  # a wall 6 px (0.3 m) thick
     # The robot, on the left, saw the wall's face eroded by grazing rays: a free strip on it.
@@ -433,8 +436,6 @@ def _thick_wall() -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_a_piece_of_a_thick_wall_seen_gone_from_both_sides_is_evidence() -> None:
-    from mapserver.diff import removal_evidence
-
     g, loc = _thick_wall()
     # A 1 m piece removed: free seen 0.2 m deep from below, 0.1 m from above; its middle
     # unseen, no wall anywhere in it.
@@ -458,8 +459,6 @@ def test_a_piece_of_a_thick_wall_seen_gone_from_both_sides_is_evidence() -> None
 
 
 def test_a_thick_wall_s_face_eroded_is_no_evidence_even_seen_from_both_sides() -> None:
-    from mapserver.diff import removal_evidence
-
     g, loc = _thick_wall()
     # No ray hit the faces (grazing), and they eroded a cell of the lower one over 1 m: open
     # space on both sides, nothing seen occupied in between, yet only the face's own row.
@@ -498,8 +497,6 @@ def test_free_cells_behind_a_face_seen_standing_are_no_evidence() -> None:
     as on a face seen from afar), its inside free in the local map: a drifted part of the map
     laid over it, since no ray crossed the faces. With one face gone, the same cells are a
     removal the robot looked into."""
-    from mapserver.diff import removal_evidence
-
     g = np.full((60, 60), FREE, np.uint8)
     g[20:40, 10:50] = OCCUPIED
     loc = np.full(g.shape, FREE, np.uint8)
@@ -507,10 +504,9 @@ def test_free_cells_behind_a_face_seen_standing_are_no_evidence() -> None:
     loc[20:40, 10] = loc[20:40, 49] = OCCUPIED
     inside = np.zeros(g.shape, bool)
     inside[26:34, 16:44] = True  # 0.3 m from every face
-    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
-    assert not removal_evidence(g, loc, inside, **kw).any()
+    assert not removal_evidence(g, loc, inside, **_SEEN_BOTH_SIDES).any()
     loc[20, :] = FREE  # the upper face gone: the robot sees into the block from above
-    assert removal_evidence(g, loc, inside, **kw).sum() == inside.sum()
+    assert removal_evidence(g, loc, inside, **_SEEN_BOTH_SIDES).sum() == inside.sum()
 
 
 def test_a_ragged_face_of_a_block_never_seen_inside_is_no_evidence() -> None:
@@ -519,21 +515,18 @@ def test_a_ragged_face_of_a_block_never_seen_inside_is_no_evidence() -> None:
     true face, the inside unseen: the protruding cells are seen free with open space both
     sides of them along the face (the notches), yet nothing was removed. A 2-cell wall seen
     through the same way is."""
-    from mapserver.diff import removal_evidence
-
-    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
     g = np.full((60, 60), FREE, np.uint8)
     g[10:50, 10:30] = OCCUPIED
     g[10:50:2, 30] = OCCUPIED  # the ragged face: a cell out, every other row
     loc = np.full(g.shape, UNKNOWN, np.uint8)
     loc[:, 30:] = FREE  # seen up to the true face; the block's inside never
     sliver = (g == OCCUPIED) & (loc == FREE)
-    assert sliver.sum() == 20 and not removal_evidence(g, loc, sliver, **kw).any()
+    assert sliver.sum() == 20 and not removal_evidence(g, loc, sliver, **_SEEN_BOTH_SIDES).any()
     thin = np.full(g.shape, FREE, np.uint8)
     thin[10:50, 29:31] = OCCUPIED  # a wall 0.1 m thick, seen free through and beyond
     seen = np.full(g.shape, FREE, np.uint8)
     gone = (thin == OCCUPIED) & (seen == FREE)
-    assert removal_evidence(thin, seen, gone, **kw).sum() == gone.sum()
+    assert removal_evidence(thin, seen, gone, **_SEEN_BOTH_SIDES).sum() == gone.sum()
 
 
 def test_a_holed_wall_face_eroded_to_an_unseen_inside_is_no_evidence() -> None:
@@ -542,9 +535,6 @@ def test_a_holed_wall_face_eroded_to_an_unseen_inside_is_no_evidence() -> None:
     both rows free in the local map, the room beyond unseen: the holes are free on the far
     side, one cell deep, yet nothing was removed. The same wall seen through, the room behind
     it seen free for the first time (unknown in the global map still), is a removal."""
-    from mapserver.diff import removal_evidence
-
-    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
     g = np.full((60, 60), UNKNOWN, np.uint8)
     g[31:, :] = FREE  # the corridor below the wall
     g[30, 5:55] = OCCUPIED  # the wall's outer row, whole
@@ -554,9 +544,9 @@ def test_a_holed_wall_face_eroded_to_an_unseen_inside_is_no_evidence() -> None:
     loc[29, 20:40] = FREE  # both rows eroded for 1 m
     eroded = (g == OCCUPIED) & (loc == FREE)
     eroded[:, :20] = eroded[:, 40:] = False
-    assert eroded.sum() == 25 and not removal_evidence(g, loc, eroded, **kw).any()
+    assert eroded.sum() == 25 and not removal_evidence(g, loc, eroded, **_SEEN_BOTH_SIDES).any()
     loc[10:29, 20:40] = FREE  # the wall gone: the room behind seen through the gap
-    assert removal_evidence(g, loc, eroded, **kw).sum() == eroded.sum()
+    assert removal_evidence(g, loc, eroded, **_SEEN_BOTH_SIDES).sum() == eroded.sum()
 
 
 def test_the_face_in_front_of_a_notch_seen_deep_is_evidence_and_an_eroded_face_is_not() -> None:
@@ -565,9 +555,6 @@ def test_the_face_in_front_of_a_notch_seen_deep_is_evidence_and_an_eroded_face_i
     face's cells there (too shallow for the depth rule, with nothing but structure beyond them
     to be seen through) are evidence too. The same face eroded with nothing seen behind it is
     not."""
-    from mapserver.diff import removal_evidence
-
-    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
     g = np.full((80, 100), FREE, np.uint8)
     g[20:, 10:90] = OCCUPIED
     loc = np.full(g.shape, UNKNOWN, np.uint8)
@@ -575,13 +562,13 @@ def test_the_face_in_front_of_a_notch_seen_deep_is_evidence_and_an_eroded_face_i
     loc[20:35, 40:60] = FREE  # the notch, seen free ...
     loc[20:36, 39] = loc[20:36, 60] = loc[35, 39:61] = OCCUPIED  # ... with its new walls
     notch = (g == OCCUPIED) & (loc == FREE)
-    evidence = removal_evidence(g, loc, notch, **kw)
+    evidence = removal_evidence(g, loc, notch, **_SEEN_BOTH_SIDES)
     assert evidence[20:22, 42:58].all()  # the face, 0.05-0.1 m deep (not its corners)
     assert evidence[22:33, 40:60].all()  # and what lies deeper
     eroded = np.full(g.shape, UNKNOWN, np.uint8)
     eroded[:22, :] = FREE  # grazing rays wore the face two cells deep, nothing behind
     face = (g == OCCUPIED) & (eroded == FREE)
-    assert face.sum() == 160 and not removal_evidence(g, eroded, face, **kw).any()
+    assert face.sum() == 160 and not removal_evidence(g, eroded, face, **_SEEN_BOTH_SIDES).any()
 
 
 def _notched_block() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -604,8 +591,6 @@ def test_a_notch_cut_into_a_block_is_removed_beside_its_new_walls() -> None:
     """The removed tolerance is for a local wall that stands for a drawn one (misalignment);
     the notch's new walls stand 0.5 m inside the drawn block: the cells between them and the
     open space are what was cut away, and what the robot saw cut away is evidence."""
-    from mapserver.diff import removal_evidence
-
     g, loc, notch = _notched_block()
     roi = np.ones(g.shape, bool)
     kw = {"resolution": RES, "tolerance_m": 0.15, "removed_tolerance_m": 0.25}
@@ -688,9 +673,6 @@ def test_a_face_with_a_wall_seen_standing_behind_it_is_no_evidence_of_a_tunnel_b
     """A tunnel seen free 0.3 m inside a block from its west end, and the block's top face
     eroded above it with rows seen occupied between the two: no ray that reached the tunnel
     crossed that face, so the tunnel is no evidence for it."""
-    from mapserver.diff import removal_evidence
-
-    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35, "both_sides_m": 1.0}
     g = np.full((90, 100), FREE, np.uint8)
     g[20:70, 10:90] = OCCUPIED
     loc = np.full(g.shape, UNKNOWN, np.uint8)
@@ -701,6 +683,6 @@ def test_a_face_with_a_wall_seen_standing_behind_it_is_no_evidence_of_a_tunnel_b
     face = np.zeros(g.shape, bool)
     face[20:22, 30:46] = True
     removed = face | ((g == OCCUPIED) & (loc == FREE))
-    evidence = removal_evidence(g, loc, removed, **kw)
+    evidence = removal_evidence(g, loc, removed, **_SEEN_BOTH_SIDES)
     assert evidence[26:31, 20:45].any()  # the tunnel itself, seen deep
     assert not (evidence & face).any()
