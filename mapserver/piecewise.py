@@ -444,6 +444,7 @@ def another_pass_explains(
     min_gap_m: float = 0.5,
     min_score: float = 0.6,
     share: float = 0.8,
+    open_there: Callable[[FloatArray], NDArray[np.bool_]] | None = None,
 ) -> bool:
     """Whether a difference at nav2 points ``xy`` (N, 2) is a fold: seen on another pass.
 
@@ -457,6 +458,11 @@ def another_pass_explains(
     within the chain's agreement) whose run came within ``reach_m`` of them and that puts them
     ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
     building (``fits``, per nav2 point), that pass saw them, and they are no change.
+
+    With ``open_there`` (per slam point: the local map open there), a pass does not explain
+    them when ``share`` of the places its transform takes ``xy`` back to are open: where that
+    pass would have drawn what the building has at ``xy``, had it seen it standing, the map is
+    open as well; two passes agree (a structure really gone, seen on both).
     """
     grid = Grid.of_map(local)
     best: tuple[int, Piece, FloatArray] | None = None
@@ -476,8 +482,12 @@ def another_pass_explains(
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue
-        if float(np.mean(fits(q.nav2_from_slam.apply(slam)))) >= share:
-            return True
+        if float(np.mean(fits(q.nav2_from_slam.apply(slam)))) < share:
+            continue
+        back = q.nav2_from_slam.inverse().apply(xy)
+        if open_there is not None and float(np.mean(open_there(back))) >= share:
+            continue
+        return True
     return False
 
 

@@ -524,6 +524,15 @@ _FLOOR_SEEN_SHARE = 0.95
 # added only: false positives 79 -> 43 for 8 of the 436 changes found; removed too: 43 -> 17
 # for 12 more (F1 up in five sets, 8642 down 0.010). Trusted pieces only: 14 false positives
 # more, F1 down 0.006-0.023 in three sets.
+# A removed one, though, is the building's structure seen open, and a pass that explains it
+# must have seen that structure standing: where its transform takes the structure's place
+# back to in the slam frame, the local map must not be open (seen free, no local wall within
+# tolerance_m) for _PASS_SHARE of it. Open there too, that pass drew the place gone as well:
+# two passes agree, a removal seen on both. Census over the six drift sets (session 12): of
+# the removed differences a pass explained, 11 of 13 real ones were open on the explaining
+# pass, against 8 of 41 folds (mostly a pass 4-5 m off whose place back was other floor).
+# Not for an added one: there the place back was as often open for the 8 real ones as for
+# the 47 folds.
 _PASS_REACH_M = 12.0
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
@@ -593,6 +602,15 @@ def _refit(
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
 
+    @cache
+    def open_in_local() -> np.ndarray:
+        """``local``'s own cells (slam frame) seen free with no wall of it within
+        ``tolerance_m`` (built on first use)."""
+        r = max(1, round(d.tolerance_m / local.resolution))
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        walls = cv2.dilate((local.state == OCCUPIED).view(np.uint8), disk).view(bool)
+        return np.asarray((local.state == FREE) & ~walls)
+
     def explained(diff: cluster_stage.Difference) -> bool:
         assert diff.cells is not None
         if (
@@ -627,7 +645,9 @@ def _refit(
             removed_tolerance_m=d.removed_tolerance_m,
         ):
             return True
-        if aligned.in_pieces and _seen_on_another_pass(diff, aligned, local, config, near_wall):
+        if aligned.in_pieces and _seen_on_another_pass(
+            diff, aligned, local, config, near_wall, open_in_local
+        ):
             return True
         return diff.kind == "added" and refit_stage.ghost_of_wall(
             diff.cells,
@@ -647,10 +667,12 @@ def _seen_on_another_pass(
     local: OccupancyMap,
     config: Config,
     near_wall: Callable[[], np.ndarray],
+    open_in_local: Callable[[], np.ndarray],
 ) -> bool:
     """Whether another pass of a route aligned in pieces saw ``diff``'s cells as no change
     (``_PASS_REACH_M``): an added one's on a global wall (``near_wall()``), a removed one's on
-    the open floor (free, off every wall)."""
+    the open floor (free, off every wall) unless that pass drew the structure's place open
+    too (``open_in_local()``: both passes saw it gone)."""
     assert diff.cells is not None
     if aligned.pieces is None:
         return False
@@ -662,6 +684,13 @@ def _seen_on_another_pass(
             return on_wall
         return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)
 
+    open_there = None
+    if diff.kind == "removed":
+        local_grid = Grid.of_map(local)
+
+        def open_there(slam_xy: np.ndarray) -> np.ndarray:
+            return local_grid.sample(open_in_local(), slam_xy, False)
+
     return piecewise.another_pass_explains(
         local,
         aligned.pieces,
@@ -671,6 +700,7 @@ def _seen_on_another_pass(
         min_gap_m=_PASS_GAP_M,
         min_score=config.pipeline.align.min_score,
         share=_PASS_SHARE,
+        open_there=open_there,
     )
 
 

@@ -745,3 +745,29 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     # A pass that did not align (under min_score) gives no transform to trust.
     weak = _fold_pieces(other_score=0.4)
     assert not piecewise.another_pass_explains(*weak, xy, _wall_at_y(6.0))
+
+
+def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
+    """Removed cells at (7.5..8.5, 5): through the other pass's transform (1 m north) they
+    land on open floor, as a fold's would. But had that pass seen the structure standing, it
+    would have drawn it where its transform takes the building's place back to (y = 4 in the
+    slam frame): open there too, both passes saw it gone, and it is a removal."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    local, pieces = _fold_pieces()
+
+    def on_floor(nav2_xy: np.ndarray) -> np.ndarray:
+        return np.abs(nav2_xy[:, 1] - 5.0) > 0.3
+
+    def open_but_the_wall_at_y4(slam_xy: np.ndarray) -> np.ndarray:
+        return np.abs(slam_xy[:, 1] - 4.0) > 0.15
+
+    def open_everywhere(slam_xy: np.ndarray) -> np.ndarray:
+        return np.ones(len(slam_xy), bool)
+
+    assert piecewise.another_pass_explains(local, pieces, xy, on_floor)
+    assert piecewise.another_pass_explains(
+        local, pieces, xy, on_floor, open_there=open_but_the_wall_at_y4
+    )
+    assert not piecewise.another_pass_explains(
+        local, pieces, xy, on_floor, open_there=open_everywhere
+    )
