@@ -319,12 +319,15 @@ def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() 
     assert _column_seen_through_a_band(in_pieces=True) == []
 
 
-def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[Difference]:
+def _refit_in_pieces(
+    kind: str, other_run_x: tuple[float, float], *, other_saw_the_block: bool = True
+) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
     for the added kind, none for the removed), of the west piece (identity). The other piece
     (third on the route) puts everything 1 m north; its run lies along y = 5 m over
-    ``other_run_x``."""
+    ``other_run_x``. ``other_saw_the_block``: the local map shows the block where that pass
+    saw it standing (1 m south, y 4 m in the slam frame); else open there too."""
     from mapserver import piecewise
     from mapserver.cluster import Difference
     from mapserver.geometry import Transform2D
@@ -335,7 +338,10 @@ def _refit_in_pieces(kind: str, other_run_x: tuple[float, float]) -> list[Differ
     if kind == "added":
         glob[48:52, 70:90] = FREE
         glob[39:41, :] = OCCUPIED  # the wall, y 5.9..6.1
-    local = from_states(np.full((100, 200), FREE, np.uint8), res, (0.0, 0.0, 0.0))
+    drawn = np.full((100, 200), FREE, np.uint8)
+    if other_saw_the_block:
+        drawn[58:62, 70:90] = OCCUPIED  # y 3.8..4.2
+    local = from_states(drawn, res, (0.0, 0.0, 0.0))
     west = np.zeros((100, 200), bool)
     west[:, :100] = True
     pieces = piecewise.Pieces(
@@ -379,3 +385,11 @@ def test_a_difference_another_pass_saw_as_the_building_is_a_fold(kind: str) -> N
     assert _refit_in_pieces(kind, (10.0, 20.0)) == []
     # Its run 17 m away and more: no lidar of it saw the place; the difference stands.
     assert len(_refit_in_pieces(kind, (25.0, 40.0))) == 1
+
+
+def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
+    """The other pass's transform lays the removed cells on open floor, as a fold's, but where
+    that pass would have drawn the block had it seen it standing (1 m south in the slam frame),
+    the local map is open as well: both passes saw it gone, and it is a removal."""
+    assert _refit_in_pieces("removed", (10.0, 20.0), other_saw_the_block=False) != []
+    assert _refit_in_pieces("removed", (10.0, 20.0), other_saw_the_block=True) == []
