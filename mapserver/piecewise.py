@@ -484,9 +484,10 @@ def another_pass_explains(
             continue
         if float(np.mean(fits(q.nav2_from_slam.apply(slam)))) < share:
             continue
-        back = q.nav2_from_slam.inverse().apply(xy)
-        if open_there is not None and float(np.mean(open_there(back))) >= share:
-            continue
+        if open_there is not None:
+            back = q.nav2_from_slam.inverse().apply(xy)
+            if float(np.mean(open_there(back))) >= share:
+                continue
         return True
     return False
 

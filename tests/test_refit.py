@@ -320,14 +320,20 @@ def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() 
 
 
 def _refit_in_pieces(
-    kind: str, other_run_x: tuple[float, float], *, other_saw_the_block: bool = True
+    kind: str,
+    other_run_x: tuple[float, float],
+    *,
+    other_drew: int = OCCUPIED,
+    wall_beside: bool = False,
 ) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
     for the added kind, none for the removed), of the west piece (identity). The other piece
     (third on the route) puts everything 1 m north; its run lies along y = 5 m over
-    ``other_run_x``. ``other_saw_the_block``: the local map shows the block where that pass
-    saw it standing (1 m south, y 4 m in the slam frame); else open there too."""
+    ``other_run_x``. ``other_drew``: the local map's state where that pass would have drawn
+    the block (1 m south, y 4 m in the slam frame): OCCUPIED, it saw it standing; FREE, it saw
+    the place open too; UNKNOWN, it did not see it. ``wall_beside``: a local wall 0.1-0.2 m south
+    of the place back (within ``tolerance_m``, 0.15 m, of half of it)."""
     from mapserver import piecewise
     from mapserver.cluster import Difference
     from mapserver.geometry import Transform2D
@@ -339,8 +345,9 @@ def _refit_in_pieces(
         glob[48:52, 70:90] = FREE
         glob[39:41, :] = OCCUPIED  # the wall, y 5.9..6.1
     drawn = np.full((100, 200), FREE, np.uint8)
-    if other_saw_the_block:
-        drawn[58:62, 70:90] = OCCUPIED  # y 3.8..4.2
+    drawn[58:62, 70:90] = other_drew  # y 3.8..4.2
+    if wall_beside:
+        drawn[61, 70:90] = OCCUPIED  # y 3.85
     local = from_states(drawn, res, (0.0, 0.0, 0.0))
     west = np.zeros((100, 200), bool)
     west[:, :100] = True
@@ -391,5 +398,15 @@ def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
     """The other pass's transform lays the removed cells on open floor, as a fold's, but where
     that pass would have drawn the block had it seen it standing (1 m south in the slam frame),
     the local map is open as well: both passes saw it gone, and it is a removal."""
-    assert _refit_in_pieces("removed", (10.0, 20.0), other_saw_the_block=False) != []
-    assert _refit_in_pieces("removed", (10.0, 20.0), other_saw_the_block=True) == []
+    assert len(_refit_in_pieces("removed", (10.0, 20.0), other_drew=FREE)) == 1
+    assert _refit_in_pieces("removed", (10.0, 20.0), other_drew=OCCUPIED) == []
+    # Unknown there is not open: nothing says that pass saw it gone; still a fold.
+    assert _refit_in_pieces("removed", (10.0, 20.0), other_drew=UNKNOWN) == []
+    # A wall seen open a few centimetres from the place is not open there either.
+    assert _refit_in_pieces("removed", (10.0, 20.0), other_drew=FREE, wall_beside=True) == []
+
+
+def test_an_obstacle_the_other_pass_drew_on_open_floor_is_still_a_fold() -> None:
+    """Only a removed difference asks what the other pass drew at the building's place: an
+    added one's place back open is what any pass shows of open floor, fold or not."""
+    assert _refit_in_pieces("added", (10.0, 20.0), other_drew=FREE) == []
