@@ -460,9 +460,11 @@ def another_pass_explains(
     building (``fits``, per nav2 point), that pass saw them, and they are no change.
 
     With ``open_there`` (per slam point: the local map open there), a pass does not explain
-    them when ``share`` of the places its transform takes ``xy`` back to are open: where that
-    pass would have drawn what the building has at ``xy``, had it seen it standing, the map is
-    open as well; two passes agree (a structure really gone, seen on both).
+    them when ``share`` of the places its transform takes ``xy`` back to are open and its run
+    came within ``reach_m`` of them: where that pass would have drawn what the building has at
+    ``xy``, had it seen it standing, the map is open as well; two passes agree (a structure
+    really gone, seen on both). Beyond its reach the place back is some other pass's floor,
+    and says nothing of this one.
     """
     grid = Grid.of_map(local)
     best: tuple[int, Piece, FloatArray] | None = None
@@ -486,7 +488,8 @@ def another_pass_explains(
             continue
         if open_there is not None:
             back = q.nav2_from_slam.inverse().apply(xy)
-            if float(np.mean(open_there(back))) >= share:
+            near = float(np.hypot(*(q.run - back.mean(axis=0)).T).min()) <= reach_m
+            if near and float(np.mean(open_there(back))) >= share:
                 continue
         return True
     return False

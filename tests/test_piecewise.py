@@ -771,3 +771,11 @@ def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
     assert not piecewise.another_pass_explains(
         local, pieces, xy, on_floor, open_there=open_everywhere
     )
+    # The other pass's run came within 2.0 m of the cells and 2.24 m of the place back: with a
+    # reach between the two, the place back's floor is some other pass's and says nothing.
+    assert piecewise.another_pass_explains(
+        local, pieces, xy, on_floor, reach_m=2.1, open_there=open_everywhere
+    )
+    assert not piecewise.another_pass_explains(
+        local, pieces, xy, on_floor, reach_m=2.3, open_there=open_everywhere
+    )
