@@ -51,7 +51,7 @@ from mapserver.fleet import observe, store
 from mapserver.fleet.model import MapLink
 from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D, fit_rigid
-from mapserver.grid import Grid, box_around, landing_box, resample
+from mapserver.grid import Grid, box_around, box_of_cells, landing_box, resample
 from mapserver.mapcache import MapCache
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, load_map
 from mapserver.trust import trust_notice
@@ -607,15 +607,6 @@ def _refit(
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
 
-    @cache
-    def open_in_local() -> np.ndarray:
-        """``local``'s own cells (slam frame) seen free with no wall of it within
-        ``tolerance_m`` (built on first use)."""
-        r = max(1, round(d.tolerance_m / local.resolution))
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        walls = cv2.dilate((local.state == OCCUPIED).view(np.uint8), disk).view(bool)
-        return np.asarray((local.state == FREE) & ~walls)
-
     def explained(diff: cluster_stage.Difference) -> bool:
         assert diff.cells is not None
         if (
@@ -650,9 +641,7 @@ def _refit(
             removed_tolerance_m=d.removed_tolerance_m,
         ):
             return True
-        if aligned.in_pieces and _seen_on_another_pass(
-            diff, aligned, local, config, near_wall, open_in_local
-        ):
+        if aligned.in_pieces and _seen_on_another_pass(diff, aligned, local, config, near_wall):
             return True
         return diff.kind == "added" and refit_stage.ghost_of_wall(
             diff.cells,
@@ -672,12 +661,11 @@ def _seen_on_another_pass(
     local: OccupancyMap,
     config: Config,
     near_wall: Callable[[], np.ndarray],
-    open_in_local: Callable[[], np.ndarray],
 ) -> bool:
     """Whether another pass of a route aligned in pieces saw ``diff``'s cells as no change
     (``_PASS_REACH_M``): an added one's on a global wall (``near_wall()``), a removed one's on
     the open floor (free, off every wall) unless that pass drew the structure's place open
-    too (``open_in_local()``: both passes saw it gone)."""
+    too (:func:`_open_in`: both passes saw it gone)."""
     assert diff.cells is not None
     if aligned.pieces is None:
         return False
@@ -689,15 +677,9 @@ def _seen_on_another_pass(
             return on_wall
         return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)
 
-    open_there: Callable[[np.ndarray], np.ndarray] | None = None
+    open_there = None
     if diff.kind == "removed":
-        local_grid = Grid.of_map(local)
-
-        def open_at(slam_xy: np.ndarray) -> np.ndarray:
-            # Off the local map, like unknown there: not seen open (the pass may explain it).
-            return local_grid.sample(open_in_local(), slam_xy, False)
-
-        open_there = open_at
+        open_there = partial(_open_in, local, wall_m=config.pipeline.diff.tolerance_m)
 
     return piecewise.another_pass_explains(
         local,
@@ -710,6 +692,27 @@ def _seen_on_another_pass(
         share=_PASS_SHARE,
         open_there=open_there,
     )
+
+
+def _open_in(local: OccupancyMap, slam_xy: np.ndarray, *, wall_m: float) -> np.ndarray:
+    """Whether ``local`` is open at each slam point of ``slam_xy`` (N, 2): its cell seen free,
+    no wall of it within ``wall_m``; off the map, like unknown, not open. Worked out in the
+    box around the points only: a fold check asks at a few places of a map that may span
+    hundreds of metres."""
+    px = np.rint(Grid.of_map(local).to_pixel(slam_xy)).astype(np.intp)
+    cols, rows = px[:, 0], px[:, 1]
+    h, w = local.state.shape
+    on = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    out = np.zeros(len(px), bool)
+    if not on.any():
+        return out
+    r = max(1, round(wall_m / local.resolution))
+    box = box_of_cells(rows[on], cols[on], r, local.state.shape)
+    crop = local.state[box]
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    walls = cv2.dilate((crop == OCCUPIED).view(np.uint8), disk).view(bool)
+    out[on] = ((crop == FREE) & ~walls)[rows[on] - box[0].start, cols[on] - box[1].start]
+    return out
 
 
 def _map_link(

@@ -410,3 +410,25 @@ def test_an_obstacle_the_other_pass_drew_on_open_floor_is_still_a_fold() -> None
     """Only a removed difference asks what the other pass drew at the building's place: an
     added one's place back open is what any pass shows of open floor, fold or not."""
     assert _refit_in_pieces("added", (10.0, 20.0), other_drew=FREE) == []
+
+
+def test_open_is_read_in_a_crop_as_over_the_whole_map() -> None:
+    """The fold check reads "open" (seen free, no wall within the tolerance) in a box around
+    the points asked about; it must read what the whole map says, the map's edges included."""
+    import cv2
+
+    from mapserver import pipeline
+    from mapserver.grid import Grid
+
+    rng = np.random.default_rng(5)
+    state = rng.choice(np.array([FREE, OCCUPIED, UNKNOWN], np.uint8), (60, 90), p=[0.88, 0.02, 0.1])
+    local = from_states(state, 0.05, (-1.0, 2.0, 0.0))
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))  # 0.15 m at 0.05 m
+    walls = cv2.dilate((state == OCCUPIED).view(np.uint8), disk).view(bool)
+    whole = (state == FREE) & ~walls
+    xy = rng.uniform([-1.5, 1.5], [4.0, 5.5], (400, 2))  # some off the map
+    expected = Grid.of_map(local).sample(whole, xy, False)
+    assert expected.any() and not expected.all()
+    for chunk in np.array_split(np.arange(len(xy)), 40):
+        got = pipeline._open_in(local, xy[chunk], wall_m=0.15)
+        assert np.array_equal(got, expected[chunk])
