@@ -320,6 +320,22 @@ def _estimate_drift(
     return deform.DriftStack(tuple(fields))
 
 
+def _route_on_building(
+    aligned: _Aligned, route_slam: np.ndarray | None
+) -> tuple[Transform2D, np.ndarray | None]:
+    """The transform that puts the robot where box and heading ROIs start, and the route
+    (N, 2, nav2; None without one) the trajectory ROI and the overlay draw: aligned in
+    pieces, each run carried by its own piece (a left-out one by its nearest trusted piece),
+    the robot by the last one's carrier; else both by the one transform."""
+    if aligned.in_pieces and aligned.pieces is not None:
+        route_xy = piecewise.route_nav2(aligned.pieces)
+        if route_xy is not None:
+            last = aligned.pieces.pieces[-1].index
+            return piecewise.carrier(aligned.pieces, last) or aligned.transform, route_xy
+    route_xy = None if route_slam is None else aligned.transform.apply(route_slam)
+    return aligned.transform, route_xy
+
+
 def _make_roi(
     config: Config,
     files: BundleFiles,
@@ -1382,17 +1398,7 @@ def process_bundle(
     if aligned.drift_m >= _REPORT_WARP_M:  # as large as the report names the warp
         log.info("%s: drift corrected, up to %.2f m", bundle_id, aligned.drift_m)
     grid, local_state = aligned.view.grid, aligned.local_state
-    # The route the trajectory ROI and the overlay draw, and the transform that puts the robot
-    # where box and heading ROIs start: aligned in pieces, each run carried by its own piece.
-    robot_from, route_xy = aligned.transform, None
-    if aligned.in_pieces and aligned.pieces is not None:
-        route_xy = piecewise.route_nav2(aligned.pieces)
-        robot_from = (
-            piecewise.carrier(aligned.pieces, aligned.pieces.pieces[-1].index) or robot_from
-        )
-    if route_xy is None and inputs.route_slam is not None:
-        route_xy = aligned.transform.apply(inputs.route_slam)
-
+    robot_from, route_xy = _route_on_building(aligned, inputs.route_slam)
     region = stages.run(
         "roi",
         partial(_make_roi, config, files, robot_from, route_xy, local_state, grid, warnings),
