@@ -154,6 +154,32 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     return labels
 
 
+def seen_reach_m(local: OccupancyMap, route: FloatArray) -> float:
+    """How far from the robot's route ``route`` (M, 2, slam frame) the local map saw anything:
+    the largest distance of a known cell from it, metres (0 with nothing known).
+
+    Where the building leaves long views open, that is the sensor's range (a 12 m lidar's map
+    reaches 12 m from the route, a 20 m one's 20 m); among walls that close in, the farthest
+    the robot saw. Either way no cell of the map was seen from farther. Worked out on blocks of
+    ``_BLOCK_M`` (every cell of a block at its centre, the route seeding the blocks it crosses),
+    less half a block's diagonal: block centres overstate the distance by up to that much.
+    """
+    h, w = local.state.shape
+    f = max(1, round(_BLOCK_M / local.resolution))
+    hh, ww = -(-h // f), -(-w // f)
+    known = np.pad(local.state != UNKNOWN, ((0, hh * f - h), (0, ww * f - w)))
+    seen = known.reshape(hh, f, ww, f).any(axis=(1, 3))
+    px = np.rint(Grid.of_map(local).to_pixel(_densify(route, local.resolution))).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    off_route = np.ones((hh, ww), np.uint8)
+    off_route[px[ok, 1] // f, px[ok, 0] // f] = 0
+    if not seen.any() or off_route.all():
+        return 0.0
+    block_m = f * local.resolution
+    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return max(0.0, float(dist[seen].max()) * block_m - block_m / math.sqrt(2))
+
+
 def _densify(run: FloatArray, step_m: float) -> FloatArray:
     if len(run) < 2:
         return run
@@ -688,5 +714,6 @@ __all__ = [
     "largest_chain",
     "route_nav2",
     "route_pieces",
+    "seen_reach_m",
     "unfit_tiles",
 ]

@@ -530,8 +530,9 @@ _FLOOR_SEEN_SHARE = 0.95
 # floor on a block (a false "removed" one). It is a fold when the transform of a pass (an
 # aligned piece not next to it on the route, trusted or left out: a chain break leaves out
 # pieces that are mostly right, and the passes that fold onto the trusted ones are often
-# theirs) whose run came within a lidar's reach of it (12 m, the generated sessions' and many
-# indoor units' range) and that puts it at least _PASS_GAP_M elsewhere (0.5 m: the pieces' own
+# theirs) whose run came within the sensor's reach of it (piecewise.seen_reach_m: how far
+# from the route the local map saw anything, its lidar's range where views are long) and that
+# puts it at least _PASS_GAP_M elsewhere (0.5 m: the pieces' own
 # agreement; nearer, the re-fit above looks) puts _PASS_SHARE of it where the building has it:
 # an added one within twice the differences' tolerance of a global wall (each piece carries
 # its own drift correction, this check does not), a removed one on free floor off every wall.
@@ -543,8 +544,8 @@ _FLOOR_SEEN_SHARE = 0.95
 # A removed one, though, is the building's structure seen open, and a pass that explains it
 # must have seen that structure standing: where its transform takes the structure's place
 # back to in the slam frame, the local map must not be open (seen free, no local wall within
-# tolerance_m) for _PASS_SHARE of it, when that pass's run came within _PASS_REACH_M of that
-# place. Open there too, that pass drew the place gone as well: two passes agree, a removal
+# tolerance_m) for _PASS_SHARE of it, when that pass's run came within the sensor's reach of
+# that place. Open there too, that pass drew the place gone as well: two passes agree, a removal
 # seen on both. Census over the six drift sets (session 12): of the removed differences a pass
 # explained, 11 of 13 real ones were open on the explaining pass, against 8 of 41 folds; 6 of
 # those 8 had an explaining pass whose run came no nearer than 12.5-15 m to the place back,
@@ -553,7 +554,11 @@ _FLOOR_SEEN_SHARE = 0.95
 # positives over the six sets (F1 up on four, 8642 0.888 -> 0.917; down on seed 4242, 0.919
 # -> 0.914). Not for an added one: there the place back was as often open for the 8 real
 # ones as for the 47 folds.
-_PASS_REACH_M = 12.0
+# The reach was a fixed 12 m until session 13, the generated sessions' lidar range: with a
+# 20 m lidar (a drifting set generated with max_range_m=20) a pass 12-20 m away was never
+# asked, and its folds were reported (29 false positives on 12 bundles, F1 0.797; with the
+# reach measured, 11 and 0.864). With 12 m lidars it measures 11.9-12.4 m: over nine drift
+# sets 3 changes fewer found and 1 false positive fewer, at the edge of the range.
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
@@ -606,8 +611,8 @@ def _refit(
     move of the added cells around them onto a wall seen in place (a wall drawn twice), nor,
     in a map aligned in pieces, for a removed one the floor around it left unseen
     (``_FLOOR_SEEN_SHARE``), nor there the transform of another pass of the route that saw
-    the place (``local``'s cells there seen on that pass: a fold, ``_PASS_REACH_M``; for a
-    removed one, unless that pass drew the structure's place open too), nor for
+    the place (``local``'s cells there seen on that pass, its run within the sensor's reach:
+    a fold; for a removed one, unless that pass drew the structure's place open too), nor for
     a removed one deep in the structure the faces around it seen from behind (a fold,
     ``_FOLD_DEPTH_M``)."""
     d = config.pipeline.diff
@@ -622,6 +627,13 @@ def _refit(
         r = max(1, round(2 * d.tolerance_m / grid.resolution))
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
+
+    @cache
+    def sensor_reach_m() -> float:
+        """How far from its route the robot saw anything (on first use)."""
+        assert aligned.pieces is not None
+        route = np.concatenate([piece.run for piece in aligned.pieces.pieces])
+        return piecewise.seen_reach_m(local, route)
 
     def explained(diff: cluster_stage.Difference) -> bool:
         assert diff.cells is not None
@@ -657,7 +669,9 @@ def _refit(
             removed_tolerance_m=d.removed_tolerance_m,
         ):
             return True
-        if aligned.in_pieces and _seen_on_another_pass(diff, aligned, local, config, near_wall):
+        if aligned.in_pieces and _seen_on_another_pass(
+            diff, aligned, local, config, near_wall, sensor_reach_m
+        ):
             return True
         return diff.kind == "added" and refit_stage.ghost_of_wall(
             diff.cells,
@@ -677,11 +691,12 @@ def _seen_on_another_pass(
     local: OccupancyMap,
     config: Config,
     near_wall: Callable[[], np.ndarray],
+    reach_m: Callable[[], float],
 ) -> bool:
-    """Whether another pass of a route aligned in pieces saw ``diff``'s cells as no change
-    (``_PASS_REACH_M``): an added one's on a global wall (``near_wall()``), a removed one's on
-    the open floor (free, off every wall) unless that pass drew the structure's place open
-    too (:func:`_open_in`: both passes saw it gone)."""
+    """Whether another pass of a route aligned in pieces, its run within ``reach_m()`` of
+    them (the sensor's), saw ``diff``'s cells as no change: an added one's on a global wall
+    (``near_wall()``), a removed one's on the open floor (free, off every wall) unless that
+    pass drew the structure's place open too (:func:`_open_in`: both passes saw it gone)."""
     assert diff.cells is not None
     if aligned.pieces is None:
         return False
@@ -702,7 +717,7 @@ def _seen_on_another_pass(
         aligned.pieces,
         grid.to_world(diff.cells[:, ::-1].astype(float)),
         fits,
-        reach_m=_PASS_REACH_M,
+        reach_m=reach_m(),
         min_gap_m=_PASS_GAP_M,
         min_score=config.pipeline.align.min_score,
         share=_PASS_SHARE,

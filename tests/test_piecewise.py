@@ -779,3 +779,27 @@ def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
     assert not piecewise.another_pass_explains(
         local, pieces, xy, on_floor, reach_m=2.3, open_there=open_everywhere
     )
+
+
+@pytest.mark.parametrize("seen_m", [8.0, 20.0])
+def test_the_sensor_reach_is_how_far_from_the_route_the_map_saw(seen_m: float) -> None:
+    """A route along y = 25 m from x = 5 to x = 25 m (0.1 m cells), the map seen free within
+    ``seen_m`` of it on either side (a lidar of that range in a hall, walls beyond it) and
+    unknown past that: the reach is that range, to a cell or two."""
+    state = np.full((500, 300), UNKNOWN, np.uint8)  # 30 m x 50 m; row r: y = 50 - (r + 0.5) / 10
+    ys = 50.0 - (np.arange(500) + 0.5) * 0.1
+    rows = np.abs(ys - 25.0) <= seen_m
+    state[rows, 50:250] = FREE  # x 5..25
+    local = from_states(state, 0.1, (0.0, 0.0, 0.0))
+    route = np.array([[5.0, 25.0], [15.0, 25.0], [25.0, 25.0]])
+    assert piecewise.seen_reach_m(local, route) == pytest.approx(seen_m, abs=0.2)
+    # Seen only up to 3 m away on the far side of a wall: the map never reached further.
+    walled = state.copy()
+    walled[np.abs(ys - 25.0) > 3.0, :] = UNKNOWN
+    assert piecewise.seen_reach_m(
+        from_states(walled, 0.1, (0.0, 0.0, 0.0)), route
+    ) == pytest.approx(3.0, abs=0.2)
+    # Nothing seen, or a route wholly off the map: no reach at all.
+    nothing = from_states(np.full((500, 300), UNKNOWN, np.uint8), 0.1, (0.0, 0.0, 0.0))
+    assert piecewise.seen_reach_m(nothing, route) == 0.0
+    assert piecewise.seen_reach_m(local, route + 100.0) == 0.0

@@ -325,6 +325,7 @@ def _refit_in_pieces(
     *,
     other_drew: int = OCCUPIED,
     wall_beside: bool = False,
+    seen_north_m: float = 0.0,
 ) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
@@ -333,7 +334,9 @@ def _refit_in_pieces(
     ``other_run_x``. ``other_drew``: the local map's state where that pass would have drawn
     the block (1 m south, y 4 m in the slam frame): OCCUPIED, it saw it standing; FREE, it saw
     the place open too; UNKNOWN, it did not see it. ``wall_beside``: a local wall 0.1-0.2 m south
-    of the place back (within ``tolerance_m``, 0.15 m, of half of it)."""
+    of the place back (within ``tolerance_m``, 0.15 m, of half of it). ``seen_north_m``:
+    the slam map also saw that far north of the hall (seen free; a sensor that reaches
+    further than the hall's 5 m)."""
     from mapserver import piecewise
     from mapserver.cluster import Difference
     from mapserver.geometry import Transform2D
@@ -348,8 +351,11 @@ def _refit_in_pieces(
     drawn[58:62, 70:90] = other_drew  # y 3.8..4.2
     if wall_beside:
         drawn[61, 70:90] = OCCUPIED  # y 3.85
+    # Rows put north of the hall keep every row's y (the map's origin is its south-west corner).
+    north = round(seen_north_m / res)
+    drawn = np.concatenate([np.full((north, 200), FREE, np.uint8), drawn])
     local = from_states(drawn, res, (0.0, 0.0, 0.0))
-    west = np.zeros((100, 200), bool)
+    west = np.zeros(drawn.shape, bool)
     west[:, :100] = True
     pieces = piecewise.Pieces(
         (
@@ -390,8 +396,18 @@ def test_a_difference_another_pass_saw_as_the_building_is_a_fold(kind: str) -> N
     # The other pass came within 2 m: through its transform the added cells lie on the wall
     # at y = 6, the removed ones' floor on open floor. That pass's view, drawn here by slam.
     assert _refit_in_pieces(kind, (10.0, 20.0)) == []
-    # Its run 17 m away and more: no lidar of it saw the place; the difference stands.
+    # Its run 17 m away and more, where the map shows nothing seen further than 5 m from the
+    # route: no lidar of it saw the place; the difference stands.
     assert len(_refit_in_pieces(kind, (25.0, 40.0))) == 1
+
+
+@pytest.mark.parametrize("kind", ["added", "removed"])
+def test_the_other_pass_counts_as_far_as_the_sensor_saw(kind: str) -> None:
+    """The other pass's run 17 m from the difference: a lidar that saw 25 m from the route
+    (the map seen 20 m north of the hall) saw the place from there, and that pass explains
+    it; one whose map reaches 10 m did not."""
+    assert _refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0) == []
+    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=5.0)) == 1
 
 
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
