@@ -109,14 +109,9 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     labels = np.full((h, w), -1, np.int32)
     known = local.state != UNKNOWN
     f = max(1, round(_BLOCK_M / local.resolution))
-    hh, ww = -(-h // f), -(-w // f)
-    pad = ((0, hh * f - h), (0, ww * f - w))
-
-    def blocks(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return np.asarray(np.pad(mask, pad).reshape(hh, f, ww, f).any(axis=(1, 3)))
-
-    wall = blocks(local.state == OCCUPIED)
-    passable = (blocks(local.state == FREE) & ~wall).astype(np.float32)
+    wall = _any_in_blocks(local.state == OCCUPIED, f)
+    hh, ww = wall.shape
+    passable = (_any_in_blocks(local.state == FREE, f) & ~wall).astype(np.float32)
     grid = Grid.of_map(local)
     plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
@@ -156,28 +151,38 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
 
 def seen_reach_m(local: OccupancyMap, route: FloatArray) -> float:
     """How far from the robot's route ``route`` (M, 2, slam frame) the local map saw anything:
-    the largest distance of a known cell from it, metres (0 with nothing known).
+    the largest distance of a known cell from it, metres (0 with nothing known or no route).
 
     Where the building leaves long views open, that is the sensor's range (a 12 m lidar's map
     reaches 12 m from the route, a 20 m one's 20 m); among walls that close in, the farthest
-    the robot saw. Either way no cell of the map was seen from farther. Worked out on blocks of
-    ``_BLOCK_M`` (every cell of a block at its centre, the route seeding the blocks it crosses),
-    less half a block's diagonal: block centres overstate the distance by up to that much.
+    the robot saw. Either way a lower bound of the range: no cell was seen from farther.
+    Worked out on blocks of ``_BLOCK_M`` (a block's cells at its centre, the route seeding the
+    blocks it crosses), less half a block's diagonal, so that it never overstates (it falls
+    short by up to a block's diagonal). A route off the map is taken at the map's edge,
+    nearer to every cell than it is: still a lower bound, where dropping its points would
+    measure the cells beside them from the rest of the route.
     """
     h, w = local.state.shape
     f = max(1, round(_BLOCK_M / local.resolution))
-    hh, ww = -(-h // f), -(-w // f)
-    known = np.pad(local.state != UNKNOWN, ((0, hh * f - h), (0, ww * f - w)))
-    seen = known.reshape(hh, f, ww, f).any(axis=(1, 3))
+    seen = _any_in_blocks(local.state != UNKNOWN, f)
     px = np.rint(Grid.of_map(local).to_pixel(_densify(route, local.resolution))).astype(np.int64)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-    off_route = np.ones((hh, ww), np.uint8)
-    off_route[px[ok, 1] // f, px[ok, 0] // f] = 0
-    if not seen.any() or off_route.all():
+    if not seen.any() or len(px) == 0:
         return 0.0
+    px = np.clip(px, 0, [w - 1, h - 1])
+    off_route = np.ones(seen.shape, np.uint8)
+    off_route[px[:, 1] // f, px[:, 0] // f] = 0
     block_m = f * local.resolution
     dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return max(0.0, float(dist[seen].max()) * block_m - block_m / math.sqrt(2))
+
+
+def _any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:
+    """(ceil(H / f), ceil(W / f)) bool: whether each block of f x f cells of ``mask`` (the last
+    row and column of blocks padded with False) holds a True cell."""
+    h, w = mask.shape
+    hh, ww = -(-h // f), -(-w // f)
+    padded = np.pad(mask, ((0, hh * f - h), (0, ww * f - w)))
+    return np.asarray(padded.reshape(hh, f, ww, f).any(axis=(1, 3)))
 
 
 def _densify(run: FloatArray, step_m: float) -> FloatArray:

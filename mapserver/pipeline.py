@@ -560,9 +560,9 @@ _FLOOR_SEEN_SHARE = 0.95
 # reach measured, 12 and 0.859). The measure is a lower bound of the range: among walls that
 # close in, nothing lies far from the route, yet a pass 11 m off may have seen a place that
 # another part of the route passed closer to (seed 9191's gen-09 measures 10.9 m, and a fold
-# 11-12 m from its pass came back as a false removal). So never less than _PASS_REACH_M, a
+# 11-12 m from its pass came back as a false removal). So never less than _MIN_PASS_REACH_M, a
 # common indoor lidar's range: with it, every result.yaml of the 12 m sets is as before.
-_PASS_REACH_M = 12.0
+_MIN_PASS_REACH_M = 12.0
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
@@ -634,11 +634,12 @@ def _refit(
 
     @cache
     def sensor_reach_m() -> float:
-        """How far from its route the robot saw anything, at least ``_PASS_REACH_M`` (on
+        """How far from its route the robot saw anything, at least ``_MIN_PASS_REACH_M`` (on
         first use)."""
         assert aligned.pieces is not None
+        # The pieces' runs are the route cut in order, each starting where the last ended.
         route = np.concatenate([piece.run for piece in aligned.pieces.pieces])
-        return max(_PASS_REACH_M, piecewise.seen_reach_m(local, route))
+        return max(_MIN_PASS_REACH_M, piecewise.seen_reach_m(local, route))
 
     def explained(diff: cluster_stage.Difference) -> bool:
         assert diff.cells is not None

@@ -785,21 +785,45 @@ def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
 def test_the_sensor_reach_is_how_far_from_the_route_the_map_saw(seen_m: float) -> None:
     """A route along y = 25 m from x = 5 to x = 25 m (0.1 m cells), the map seen free within
     ``seen_m`` of it on either side (a lidar of that range in a hall, walls beyond it) and
-    unknown past that: the reach is that range, to a cell or two."""
+    unknown past that: the reach is that range, the farthest cell centre's distance (0.05 m
+    less), never more and at most a block's diagonal (0.28 m) less."""
     state = np.full((500, 300), UNKNOWN, np.uint8)  # 30 m x 50 m; row r: y = 50 - (r + 0.5) / 10
     ys = 50.0 - (np.arange(500) + 0.5) * 0.1
     rows = np.abs(ys - 25.0) <= seen_m
     state[rows, 50:250] = FREE  # x 5..25
     local = from_states(state, 0.1, (0.0, 0.0, 0.0))
     route = np.array([[5.0, 25.0], [15.0, 25.0], [25.0, 25.0]])
-    assert piecewise.seen_reach_m(local, route) == pytest.approx(seen_m, abs=0.2)
+    farthest = float(np.abs(ys[rows] - 25.0).max())
+    assert farthest - 0.3 <= piecewise.seen_reach_m(local, route) <= farthest
     # Seen only up to 3 m away on the far side of a wall: the map never reached further.
     walled = state.copy()
     walled[np.abs(ys - 25.0) > 3.0, :] = UNKNOWN
-    assert piecewise.seen_reach_m(
-        from_states(walled, 0.1, (0.0, 0.0, 0.0)), route
-    ) == pytest.approx(3.0, abs=0.2)
-    # Nothing seen, or a route wholly off the map: no reach at all.
+    reach = piecewise.seen_reach_m(from_states(walled, 0.1, (0.0, 0.0, 0.0)), route)
+    assert 2.95 - 0.3 <= reach <= 2.95
+    # Nothing seen, or no route: no reach at all.
     nothing = from_states(np.full((500, 300), UNKNOWN, np.uint8), 0.1, (0.0, 0.0, 0.0))
     assert piecewise.seen_reach_m(nothing, route) == 0.0
-    assert piecewise.seen_reach_m(local, route + 100.0) == 0.0
+    assert piecewise.seen_reach_m(local, np.zeros((0, 2))) == 0.0
+
+
+def test_the_sensor_reach_of_a_map_whose_size_is_no_multiple_of_the_blocks() -> None:
+    """0.05 m cells in 0.2 m blocks, a 333 x 251 cell map (16.65 m x 12.55 m): the last row and
+    column of blocks are part padding. Seen only south of a route along y = 9 m, down to the
+    map's bottom row (y 0.025 m): the reach is that cell's distance, from the padded blocks."""
+    state = np.full((251, 333), UNKNOWN, np.uint8)  # row r: y = 12.55 - (r + 0.5) * 0.05
+    ys = 12.55 - (np.arange(251) + 0.5) * 0.05
+    state[ys <= 9.0, 20:320] = FREE  # x 1..16
+    local = from_states(state, 0.05, (0.0, 0.0, 0.0))
+    route = np.array([[1.0, 9.0], [16.0, 9.0]])
+    assert 9.0 - 0.025 - 0.3 <= piecewise.seen_reach_m(local, route) <= 9.0 - 0.025
+
+
+def test_a_route_off_the_map_is_measured_from_the_map_s_edge() -> None:
+    """A route 1 m east of the map's east edge (x 10 m), everything within 2 m of the edge seen:
+    the reach is about 2 m (the route taken at the edge, nearer than it is), not the distance
+    of those cells from the part of the route on the map."""
+    state = np.full((200, 100), UNKNOWN, np.uint8)  # 10 m x 20 m; row r: y = 20 - (r + 0.5) / 10
+    state[:, 80:] = FREE  # x 8..10
+    local = from_states(state, 0.1, (0.0, 0.0, 0.0))
+    route = np.array([[5.0, 1.0], [5.0, 2.0], [11.0, 2.0], [11.0, 19.0]])
+    assert piecewise.seen_reach_m(local, route) <= 2.0

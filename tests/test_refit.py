@@ -404,9 +404,10 @@ def test_a_difference_another_pass_saw_as_the_building_is_a_fold(kind: str) -> N
 @pytest.mark.parametrize("kind", ["added", "removed"])
 def test_the_other_pass_counts_as_far_as_the_sensor_saw(kind: str) -> None:
     """The other pass's run 17 m from the difference: a lidar that saw 25 m from the route
-    (the map seen 20 m north of the hall) saw the place from there, and that pass explains
-    it; one whose map reaches 10 m did not. The map's reach is a lower bound of the sensor's
-    (walls close in): a pass 11 m off counts whatever it says, a common lidar's 12 m."""
+    (the map seen 20 m north of the hall; the route is the runs joined in order, x 0..40 m
+    along y = 5) saw the place from there, and that pass explains it; one whose map reaches
+    10 m did not. The map's reach is a lower bound of the sensor's (walls close in): a pass
+    11 m off counts whatever it says, a common lidar's 12 m."""
     assert _refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0) == []
     assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=5.0)) == 1
     assert _refit_in_pieces(kind, (19.0, 30.0)) == []
