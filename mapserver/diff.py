@@ -32,6 +32,41 @@ class DiffMasks:
     removed: BoolArray
 
 
+@dataclass(frozen=True)
+class RouteDistance:
+    """How far the cells of a grid lie from the robot's route, metres, on blocks of ``block``
+    cells: a lower bound on the length of every ray that saw a cell."""
+
+    blocks: NDArray[np.float32]
+    block: int
+
+    def of_box(self, box: tuple[slice, slice]) -> NDArray[np.float32]:
+        """The distance of every cell of ``box`` ((rows, cols) slices of the grid)."""
+        rows = np.arange(box[0].start, box[0].stop) // self.block
+        cols = np.arange(box[1].start, box[1].stop) // self.block
+        return np.asarray(self.blocks[np.ix_(rows, cols)])
+
+
+def route_distance(
+    route_px: NDArray[np.float64],
+    shape: tuple[int, ...],
+    resolution: float,
+    *,
+    block_m: float = 0.25,
+) -> RouteDistance | None:
+    """:class:`RouteDistance` on a grid of ``shape`` from the route ``route_px`` ((M, 2) pixel
+    ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None when
+    no part of the route crosses the grid."""
+    f = max(1, round(block_m / resolution))
+    off_route = np.ones((-(-shape[0] // f), -(-shape[1] // f)), np.uint8)
+    points = np.rint(np.asarray(route_px, np.float64) / f).astype(np.int32).reshape(-1, 1, 2)
+    cv2.polylines(off_route, [points], False, 0, 1)
+    if off_route.all():
+        return None
+    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return RouteDistance(np.asarray(dist * np.float32(f * resolution), np.float32), f)
+
+
 def distance_to(mask: BoolArray) -> NDArray[np.float32]:
     """Distance in pixels from every cell to the nearest True cell of ``mask`` (large if none)."""
     if not mask.any():
@@ -329,8 +364,9 @@ def misfit_tolerance(
 
     Where the alignment (with its drift correction) lays the local walls onto the global ones,
     the tolerance stays ``base_m`` (extra 0); where they still sit off (drift that could not be
-    taken out, a wall seen doubled on a revisit), it grows to the ``quantile`` of the local
-    walls' distance to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``.
+    taken out, a wall seen doubled on a revisit, a far face drawn inside its block), it grows to
+    the ``quantile`` of the local walls' distance to their global counterpart (outside it, or
+    inside it past its face), plus ``base_m`` / 2 of margin, up to ``max_m``.
     Measured over the walls in each tile of ``tile_m`` and its eight neighbours; tile edges lie
     where ``row + tile_offset_px[0]`` (and ``col + tile_offset_px[1]``) is a multiple of the tile
     size, so a lattice fixed in the map frame gives the same tiles on any crop. Returns the
@@ -342,7 +378,14 @@ def misfit_tolerance(
     box = box_around(local_walls, math.ceil(max_m / resolution) + 1)
     if box is None or not global_walls.any():
         return tol
-    dist_m = distance_to(global_walls[box]) * resolution
+    walls_there = global_walls[box]
+    dist_m = distance_to(walls_there) * resolution
+    # A local wall drawn inside the global structure sits off as far as one drawn outside it:
+    # its depth past the structure's face (the face's own cell at 0). Long grazing rays, whose
+    # drawn position is off by their length times the pose's angle error, draw a far face a
+    # few decimetres inside a block as often as out in front of it.
+    inside = cv2.distanceTransform(walls_there.view(np.uint8), cv2.DIST_L2, 5) * resolution
+    dist_m = np.where(walls_there, np.maximum(inside - resolution, 0), dist_m).astype(np.float32)
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
     counted = local_walls[box] & (dist_m <= max_m)
@@ -417,6 +460,8 @@ def removal_evidence(
     depth_m: float,
     see_through_m: float,
     both_sides_m: float = 0.0,
+    route: RouteDistance | None = None,
+    depth_per_m: float = 0.0,
 ) -> BoolArray:
     """Removed cells that show a structure is really gone, not a face eroded by grazing rays.
 
@@ -440,6 +485,12 @@ def removal_evidence(
     Open space on both sides does not count within ``depth_m`` of a structure's inside deeper
     than ``depth_m`` that the robot never saw: along a ragged face, not through the structure.
 
+    With ``route`` and ``depth_per_m`` > 0, the depth asked of a cell (by the depth rule and of
+    the face rule's anchors) grows to ``depth_per_m`` times its distance from the route where
+    that is more: a ray's drawn position is off across it by its length times the angle error
+    of the scan that cast it, and rays grazing a face from 20-30 m away draw free cells that
+    many decimetres inside it. The distance from the route understates the ray's length.
+
     Either way, a cell counts only when the robot could have seen it: connected to open space
     through cells seen free, not across a wall seen standing (a solid block whose faces are
     seen all round, its inside free only in a part of a drifted map laid over it).
@@ -455,7 +506,10 @@ def removal_evidence(
     g_occ = global_state[box] == OCCUPIED
     cand = removed[box]
     depth = cv2.distanceTransform(g_occ.astype(np.uint8), cv2.DIST_L2, 5) * resolution
-    found = cand & (depth >= depth_m)
+    need: float | NDArray[np.float32] = depth_m
+    if route is not None and depth_per_m > 0:
+        need = np.maximum(np.float32(depth_m), np.float32(depth_per_m) * route.of_box(box))
+    found = cand & (depth >= need)
     open_space = ((local_state[box] == FREE) & ~g_occ).astype(np.uint8)
     # Seen through: open space on either side beyond the structure's fringe. The cells next to
     # it are its ragged face (holes between the global map's hits, free or unknown), which
@@ -465,7 +519,7 @@ def removal_evidence(
     far_space = np.where(fringe, 0, open_space).astype(np.uint8)
     # Cells seen free well inside a structure too thick to see through: the rays that reached
     # them crossed its face in front of them (_FACE_ANCHOR_DEPTH).
-    anchors = cand & (depth >= _FACE_ANCHOR_DEPTH * depth_m)
+    anchors = cand & (depth >= _FACE_ANCHOR_DEPTH * need)
     seen_free = local_state[box] == FREE
     # The face cells it can reach lie within `reach` of an anchor: its work in that window.
     near = box_around(anchors, reach)
@@ -705,6 +759,7 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
 
 __all__ = [
     "DiffMasks",
+    "RouteDistance",
     "distance_to",
     "drop_along_walls",
     "drop_small",
@@ -714,4 +769,5 @@ __all__ = [
     "offset_distances",
     "raw_differences",
     "removal_evidence",
+    "route_distance",
 ]
