@@ -364,9 +364,8 @@ def misfit_tolerance(
 
     Where the alignment (with its drift correction) lays the local walls onto the global ones,
     the tolerance stays ``base_m`` (extra 0); where they still sit off (drift that could not be
-    taken out, a wall seen doubled on a revisit, a far face drawn inside its block), it grows to
-    the ``quantile`` of the local walls' distance to their global counterpart (outside it, or
-    inside it past its face), plus ``base_m`` / 2 of margin, up to ``max_m``.
+    taken out, a wall seen doubled on a revisit), it grows to the ``quantile`` of the local
+    walls' distance to their global counterpart, plus ``base_m`` / 2 of margin, up to ``max_m``.
     Measured over the walls in each tile of ``tile_m`` and its eight neighbours; tile edges lie
     where ``row + tile_offset_px[0]`` (and ``col + tile_offset_px[1]``) is a multiple of the tile
     size, so a lattice fixed in the map frame gives the same tiles on any crop. Returns the
@@ -378,14 +377,7 @@ def misfit_tolerance(
     box = box_around(local_walls, math.ceil(max_m / resolution) + 1)
     if box is None or not global_walls.any():
         return tol
-    walls_there = global_walls[box]
-    dist_m = distance_to(walls_there) * resolution
-    # A local wall drawn inside the global structure sits off as far as one drawn outside it:
-    # its depth past the structure's face (the face's own cell at 0). Long grazing rays, whose
-    # drawn position is off by their length times the pose's angle error, draw a far face a
-    # few decimetres inside a block as often as out in front of it.
-    inside = cv2.distanceTransform(walls_there.view(np.uint8), cv2.DIST_L2, 5) * resolution
-    dist_m = np.where(walls_there, np.maximum(inside - resolution, 0), dist_m).astype(np.float32)
+    dist_m = distance_to(global_walls[box]) * resolution
     # Local walls with a global counterpart within reach: new obstacles far from any wall do
     # not count as misfit.
     counted = local_walls[box] & (dist_m <= max_m)

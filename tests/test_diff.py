@@ -688,28 +688,6 @@ def test_a_face_with_a_wall_seen_standing_behind_it_is_no_evidence_of_a_tunnel_b
     assert not (evidence & face).any()
 
 
-def test_a_face_drawn_inside_its_block_sits_off_as_far_as_one_drawn_in_front_of_it() -> None:
-    """A block (rows 40-79, 0.05 m cells); the local map draws its face 0.3 m inside it on the
-    right half (row 46: long grazing rays whose drawn position is off by their length times the
-    scan's angle error), where the global map has it on the left (row 40). The misfit counts
-    the right half's depth past the face as it counts a wall 0.3 m in front of it."""
-    from mapserver.diff import misfit_tolerance
-
-    shape = (120, 240)
-    g_walls = np.zeros(shape, bool)
-    g_walls[40:80, :] = True
-    loc = np.full(shape, FREE, np.uint8)
-    loc[40:, :] = UNKNOWN
-    loc[40, :120] = OCCUPIED
-    loc[46, 120:] = OCCUPIED
-    loc[40:46, 120:] = FREE
-    tol = misfit_tolerance(
-        loc, g_walls, resolution=RES, base_m=0.15, max_m=0.5, tile_m=1.0, min_walls=10
-    )
-    assert tol[40, 10] == pytest.approx(0.0)
-    assert tol[46, 230] == pytest.approx(0.30 + 0.075 - 0.15, abs=0.01)
-
-
 def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -> None:
     """Free cells 0.2 m into a block (rows 20-23, the rest of it unseen): 0.15 m deep is
     evidence where the rays were short (the route 2 m away), not where they came 20 m (0.0157 m
