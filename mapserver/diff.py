@@ -8,6 +8,7 @@ A wall seen within ``tolerance_m`` of where the other map has one is misalignmen
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -55,16 +56,30 @@ def route_distance(
     block_m: float = 0.25,
 ) -> RouteDistance | None:
     """:class:`RouteDistance` on a grid of ``shape`` from the route ``route_px`` ((M, 2) pixel
-    ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None when
-    no part of the route crosses the grid."""
-    f = max(1, round(block_m / resolution))
-    off_route = np.ones((-(-shape[0] // f), -(-shape[1] // f)), np.uint8)
-    points = np.rint(np.asarray(route_px, np.float64) / f).astype(np.int32).reshape(-1, 1, 2)
-    cv2.polylines(off_route, [points], False, 0, 1)
-    if off_route.all():
+    ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None for
+    an empty route. A lower bound: a stretch of the route off the grid is taken at the grid's
+    edge (nearer to every cell than it is), and the blocks' centres less half a block's
+    diagonal."""
+    route = np.asarray(route_px, np.float64).reshape(-1, 2)
+    if len(route) == 0:
         return None
-    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return RouteDistance(np.asarray(dist * np.float32(f * resolution), np.float32), f)
+    f = max(1, round(block_m / resolution))
+    h, w = int(shape[0]), int(shape[1])
+    # Points along each leg at most a block apart (vertices far off the grid first brought
+    # within a bound: the part beyond it only lies further off).
+    route = np.clip(route, -1e6, 1e6)
+    legs = [route[:1]]
+    for a, b in itertools.pairwise(route):
+        n = max(1, math.ceil(float(np.hypot(*(b - a))) / f))
+        legs.append(a + (b - a) * (np.arange(1, n + 1)[:, None] / n))
+    points = np.clip(np.concatenate(legs), [0.0, 0.0], [w - 1.0, h - 1.0])
+    blocks = np.floor((points + 0.5) / f).astype(np.intp)
+    off_route = np.ones((-(-h // f), -(-w // f)), np.uint8)
+    off_route[blocks[:, 1], blocks[:, 0]] = 0
+    block_m = f * resolution
+    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
+    dist = np.maximum(dist - block_m / math.sqrt(2), 0)
+    return RouteDistance(np.asarray(dist, np.float32), f)
 
 
 def distance_to(mask: BoolArray) -> NDArray[np.float32]:
@@ -541,7 +556,7 @@ def removal_evidence(
     if thick_unseen.any():
         k = max(1, round(depth_m / resolution))
         beside = cv2.dilate(thick_unseen.view(np.uint8), np.ones((2 * k + 1,) * 2, np.uint8)) > 0
-        found &= ~beside | (depth >= depth_m)
+        found &= ~beside | (depth >= need)
     if across > 0:
         # Through the structure: its cells not seen occupied; across it, not along its face (a
         # line through a face eroded a cell deep reaches open space at the structure's ends):

@@ -704,8 +704,20 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     far = removal_evidence(g, loc, cells, route=RouteDistance(np.full(g.shape, 20.0), 1), **kw)
     assert near[22:24, 20:80].all() and not far.any()
     assert removal_evidence(g, loc, cells, **_SEEN_BOTH_SIDES)[22:24, 20:80].all()
+    # 0.3 m deep: the face cells in front of cells 0.225 m and more inside (1.5 x 0.15 m) are
+    # evidence through the rays that crossed them, near the route; 20 m away the anchors must
+    # lie 1.5 x 0.31 m inside, and none does.
+    loc[:26, :] = FREE
+    deeper = (g == OCCUPIED) & (loc == FREE)
+    near = removal_evidence(g, loc, deeper, route=RouteDistance(np.full(g.shape, 2.0), 1), **kw)
+    far = removal_evidence(g, loc, deeper, route=RouteDistance(np.full(g.shape, 20.0), 1), **kw)
+    assert near[20:22, 20:80].all() and not far.any()
     # The distance from a route along row 10 (0.25 m blocks of 5 cells): a cell 2.5 m below.
     route = route_distance(np.array([[0.0, 10.0], [99.0, 10.0]]), g.shape, RES)
     assert route is not None
-    assert route.of_box((slice(60, 61), slice(50, 51)))[0, 0] == pytest.approx(2.5, abs=0.25)
-    assert route_distance(np.array([[500.0, 500.0], [600.0, 500.0]]), g.shape, RES) is None
+    assert 2.5 - 0.35 <= route.of_box((slice(60, 61), slice(50, 51)))[0, 0] <= 2.5
+    # A route beyond the grid's edge is taken at the edge: a lower bound, never a gap.
+    off = route_distance(np.array([[110.0, 0.0], [110.0, 79.0]]), g.shape, RES)
+    assert off is not None
+    assert 0.5 - 0.35 <= off.of_box((slice(40, 41), slice(89, 90)))[0, 0] <= 0.5
+    assert route_distance(np.zeros((0, 2)), g.shape, RES) is None
