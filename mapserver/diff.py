@@ -8,7 +8,6 @@ A wall seen within ``tolerance_m`` of where the other map has one is misalignmen
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import box_around, nonzero_cells
+from mapserver.grid import RouteDistance, box_around, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -31,55 +30,6 @@ class DiffMasks:
 
     added: BoolArray
     removed: BoolArray
-
-
-@dataclass(frozen=True)
-class RouteDistance:
-    """How far the cells of a grid lie from the robot's route, metres, on blocks of ``block``
-    cells: a lower bound on the length of every ray that saw a cell."""
-
-    blocks: NDArray[np.float32]
-    block: int
-
-    def of_box(self, box: tuple[slice, slice]) -> NDArray[np.float32]:
-        """The distance of every cell of ``box`` ((rows, cols) slices of the grid)."""
-        rows = np.arange(box[0].start, box[0].stop) // self.block
-        cols = np.arange(box[1].start, box[1].stop) // self.block
-        return np.asarray(self.blocks[np.ix_(rows, cols)])
-
-
-def route_distance(
-    route_px: NDArray[np.float64],
-    shape: tuple[int, ...],
-    resolution: float,
-    *,
-    block_m: float = 0.25,
-) -> RouteDistance | None:
-    """:class:`RouteDistance` on a grid of ``shape`` from the route ``route_px`` ((M, 2) pixel
-    ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None for
-    an empty route. A lower bound: a stretch of the route off the grid is taken at the grid's
-    edge (nearer to every cell than it is), and the blocks' centres less half a block's
-    diagonal."""
-    route = np.asarray(route_px, np.float64).reshape(-1, 2)
-    if len(route) == 0:
-        return None
-    f = max(1, round(block_m / resolution))
-    h, w = int(shape[0]), int(shape[1])
-    # Points along each leg at most a block apart (vertices far off the grid first brought
-    # within a bound: the part beyond it only lies further off).
-    route = np.clip(route, -1e6, 1e6)
-    legs = [route[:1]]
-    for a, b in itertools.pairwise(route):
-        n = max(1, math.ceil(float(np.hypot(*(b - a))) / f))
-        legs.append(a + (b - a) * (np.arange(1, n + 1)[:, None] / n))
-    points = np.clip(np.concatenate(legs), [0.0, 0.0], [w - 1.0, h - 1.0])
-    blocks = np.floor((points + 0.5) / f).astype(np.intp)
-    off_route = np.ones((-(-h // f), -(-w // f)), np.uint8)
-    off_route[blocks[:, 1], blocks[:, 0]] = 0
-    block_m = f * resolution
-    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
-    dist = np.maximum(dist - block_m / math.sqrt(2), 0)
-    return RouteDistance(np.asarray(dist, np.float32), f)
 
 
 def distance_to(mask: BoolArray) -> NDArray[np.float32]:
@@ -766,7 +716,6 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
 
 __all__ = [
     "DiffMasks",
-    "RouteDistance",
     "distance_to",
     "drop_along_walls",
     "drop_small",
@@ -776,5 +725,4 @@ __all__ = [
     "offset_distances",
     "raw_differences",
     "removal_evidence",
-    "route_distance",
 ]

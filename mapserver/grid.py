@@ -7,6 +7,7 @@ A :class:`Grid` is a raster laid over a frame (usually nav2): arrays on it are i
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -223,3 +224,61 @@ def nonzero_cells(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np
     found = cv2.findNonZero(mask[y : y + h, x : x + w].view(np.uint8))
     cells = found.reshape(-1, 2).astype(np.intp)
     return cells[:, 1] + y, cells[:, 0] + x
+
+
+def densify(polyline: NDArray[np.float64], step: float) -> NDArray[np.float64]:
+    """The points of ``polyline`` (N, 2) and, on each leg, points at most ``step`` apart (in
+    its own units): its vertices kept, its end exact."""
+    if len(polyline) < 2:
+        return polyline
+    out = [polyline[:1]]
+    for a, b in itertools.pairwise(polyline):
+        k = max(1, math.ceil(float(np.hypot(*(b - a))) / step))
+        t = np.arange(1, k + 1)[:, None] / k
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+@dataclass(frozen=True)
+class RouteDistance:
+    """How far the cells of a grid lie from the robot's route, metres, on blocks of ``block``
+    cells: a lower bound on the length of every ray that saw a cell."""
+
+    blocks: NDArray[np.float32]
+    block: int
+
+    def of_box(self, box: tuple[slice, slice]) -> NDArray[np.float32]:
+        """The distance of every cell of ``box`` ((rows, cols) slices of the grid)."""
+        rows = np.arange(box[0].start, box[0].stop) // self.block
+        cols = np.arange(box[1].start, box[1].stop) // self.block
+        return np.asarray(self.blocks[np.ix_(rows, cols)])
+
+
+def route_distance(
+    route_px: NDArray[np.float64],
+    shape: tuple[int, ...],
+    resolution: float,
+    *,
+    block_m: float = 0.25,
+) -> RouteDistance | None:
+    """:class:`RouteDistance` on a grid of ``shape`` from the route ``route_px`` ((M, 2) pixel
+    ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None for
+    an empty route. A lower bound: a stretch of the route off the grid is taken at the grid's
+    edge (nearer to every cell than it is), and the blocks' centres less half a block's
+    diagonal."""
+    route = np.asarray(route_px, np.float64).reshape(-1, 2)
+    if len(route) == 0:
+        return None
+    f = max(1, round(block_m / resolution))
+    h, w = int(shape[0]), int(shape[1])
+    # A point every pixel along the route (vertices far off the grid first brought within a
+    # bound: the part beyond it only lies further off), then onto the grid's edge.
+    points = densify(np.clip(route, -1e6, 1e6), 1.0)
+    points = np.clip(points, [0.0, 0.0], [w - 1.0, h - 1.0])
+    blocks = np.floor((points + 0.5) / f).astype(np.intp)
+    off_route = np.ones((-(-h // f), -(-w // f)), np.uint8)
+    off_route[blocks[:, 1], blocks[:, 0]] = 0
+    block_m = f * resolution
+    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
+    dist = np.maximum(dist - block_m / math.sqrt(2), 0)
+    return RouteDistance(np.asarray(dist, np.float32), f)

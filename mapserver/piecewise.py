@@ -28,7 +28,7 @@ from mapserver import align as align_stage
 from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid
+from mapserver.grid import Grid, densify, route_distance
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -116,7 +116,7 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
         # Dense points along the run, so that its whole path is a seed, not only its poses.
-        px = np.rint(grid.to_pixel(_densify(run, local.resolution))).astype(np.int64)
+        px = np.rint(grid.to_pixel(densify(run, local.resolution))).astype(np.int64)
         ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         plus[px[ok, 1] // f, px[ok, 0] // f] = i + 1
     if not plus.any():
@@ -156,24 +156,17 @@ def seen_reach_m(local: OccupancyMap, route: FloatArray) -> float:
     Where the building leaves long views open, that is the sensor's range (a 12 m lidar's map
     reaches 12 m from the route, a 20 m one's 20 m); among walls that close in, the farthest
     the robot saw. Either way a lower bound of the range: no cell was seen from farther.
-    Worked out on blocks of ``_BLOCK_M`` (a block's cells at its centre, the route seeding the
-    blocks it crosses), less half a block's diagonal, so that it never overstates (it falls
-    short by up to a block's diagonal). A route off the map is taken at the map's edge,
-    nearer to every cell than it is: still a lower bound, where dropping its points would
-    measure the cells beside them from the rest of the route.
+    Worked out on blocks of ``_BLOCK_M`` by :func:`mapserver.grid.route_distance` (never
+    more than the distance, up to a block's diagonal less; a route off the map taken at its
+    edge).
     """
-    h, w = local.state.shape
     f = max(1, round(_BLOCK_M / local.resolution))
     seen = _any_in_blocks(local.state != UNKNOWN, f)
-    px = np.rint(Grid.of_map(local).to_pixel(_densify(route, local.resolution))).astype(np.int64)
-    if not seen.any() or len(px) == 0:
+    px = Grid.of_map(local).to_pixel(np.asarray(route, float).reshape(-1, 2))
+    distance = route_distance(px, local.state.shape, local.resolution, block_m=_BLOCK_M)
+    if distance is None or not seen.any():
         return 0.0
-    px = np.clip(px, 0, [w - 1, h - 1])
-    off_route = np.ones(seen.shape, np.uint8)
-    off_route[px[:, 1] // f, px[:, 0] // f] = 0
-    block_m = f * local.resolution
-    dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return max(0.0, float(dist[seen].max()) * block_m - block_m / math.sqrt(2))
+    return float(distance.blocks[seen].max())
 
 
 def _any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:
@@ -183,17 +176,6 @@ def _any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:
     hh, ww = -(-h // f), -(-w // f)
     padded = np.pad(mask, ((0, hh * f - h), (0, ww * f - w)))
     return np.asarray(padded.reshape(hh, f, ww, f).any(axis=(1, 3)))
-
-
-def _densify(run: FloatArray, step_m: float) -> FloatArray:
-    if len(run) < 2:
-        return run
-    out = [run[:1]]
-    for a, b in itertools.pairwise(run):
-        k = max(1, math.ceil(float(np.hypot(*(b - a))) / step_m))
-        t = np.arange(1, k + 1)[:, None] / k
-        out.append(a + t * (b - a))
-    return np.concatenate(out)
 
 
 def along_route(route: FloatArray, step_m: float) -> FloatArray:

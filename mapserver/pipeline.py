@@ -51,7 +51,14 @@ from mapserver.fleet import observe, store
 from mapserver.fleet.model import MapLink
 from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D, fit_rigid
-from mapserver.grid import Grid, box_around, box_of_cells, landing_box, resample
+from mapserver.grid import (
+    Grid,
+    box_around,
+    box_of_cells,
+    landing_box,
+    resample,
+    route_distance,
+)
 from mapserver.mapcache import MapCache
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, load_map
 from mapserver.trust import trust_notice
@@ -455,7 +462,7 @@ def _diff_masks(
         filtered = diff_stage.DiffMasks(added, filtered.removed)
     route = None
     if route_xy is not None and len(route_xy) and filtered.removed.any():
-        route = diff_stage.route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
+        route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
     evidence = diff_stage.removal_evidence(
         global_state,
         local_state,

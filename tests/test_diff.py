@@ -692,7 +692,7 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     """Free cells 0.2 m into a block (rows 20-23, the rest of it unseen): 0.15 m deep is
     evidence where the rays were short (the route 2 m away), not where they came 20 m (0.0157 m
     per metre asks 0.31 m there: the scan's angle error draws grazing rays that deep)."""
-    from mapserver.diff import RouteDistance, route_distance
+    from mapserver.grid import RouteDistance, route_distance
 
     g = np.full((80, 100), FREE, np.uint8)
     g[20:, :] = OCCUPIED  # across the whole grid: no corner to look past
