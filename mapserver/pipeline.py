@@ -461,7 +461,7 @@ def _diff_masks(
         )
         filtered = diff_stage.DiffMasks(added, filtered.removed)
     route = None
-    if route_xy is not None and len(route_xy) and filtered.removed.any():
+    if route_xy is not None and filtered.removed.any():
         route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
     evidence = diff_stage.removal_evidence(
         global_state,
@@ -1199,12 +1199,14 @@ class _Found:
     """What the comparison found, on the aligned view's grid (nav2 frame): ``region`` the ROI,
     ``masks`` the filtered added/removed cells, ``differences`` the ones reported (largest
     first). ``refit``: the session drifted, so specks were dropped and the differences checked
-    by a local re-fit (``_REFIT_DRIFT_M``)."""
+    by a local re-fit (``_REFIT_DRIFT_M``). ``route_xy``: the route (N, 2) the removal
+    evidence measured its distance from, None without one."""
 
     region: roi.Roi
     masks: diff_stage.DiffMasks
     differences: list[cluster_stage.Difference]
     refit: bool
+    route_xy: np.ndarray | None
 
 
 def _render(
@@ -1289,9 +1291,16 @@ def _judged_on_current(
         state = np.where(same & (view.state == OCCUPIED), OCCUPIED, state)
         state = state.astype(np.uint8)
     roi_mask, local, drifted = found.region.mask, inputs.local, found.refit
-    _, route_xy = _route_on_building(aligned, inputs.route_slam)
     fleet_masks, removal_current = _diff_masks(
-        state, structure, local_state, roi_mask, grid, config, local, inputs.global_map, route_xy
+        state,
+        structure,
+        local_state,
+        roi_mask,
+        grid,
+        config,
+        local,
+        inputs.global_map,
+        found.route_xy,
     )
     judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
     if drifted and judged:
@@ -1473,7 +1482,7 @@ def process_bundle(
             "refit",
             partial(_refit, differences, aligned, masks.added, config, local),
         )
-    found = _Found(region, masks, differences, refit)
+    found = _Found(region, masks, differences, refit, route_xy)
 
     alignment_doc = _alignment_doc(alignment, aligned, local, settings.align.min_score)
     notice = trust_notice(alignment_doc)
