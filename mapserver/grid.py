@@ -253,6 +253,13 @@ class RouteDistance:
         cols = np.arange(box[1].start, box[1].stop) // self.block
         return np.asarray(self.blocks[np.ix_(rows, cols)])
 
+    def farthest(self, mask: NDArray[np.bool_]) -> float:
+        """The largest distance of a True cell of ``mask`` (the grid's shape), metres, on its
+        block (0 when none is True): how far from the route the map saw anything, given its
+        known cells."""
+        blocks = any_in_blocks(mask, self.block)
+        return float(self.blocks[blocks].max()) if blocks.any() else 0.0
+
 
 def route_distance(
     route_px: NDArray[np.float64],
@@ -282,3 +289,12 @@ def route_distance(
     dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
     dist = np.maximum(dist - block_m / math.sqrt(2), 0)
     return RouteDistance(np.asarray(dist, np.float32), f)
+
+
+def any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:
+    """(ceil(H / f), ceil(W / f)) bool: whether each block of f x f cells of ``mask`` (the last
+    row and column of blocks padded with False) holds a True cell."""
+    h, w = mask.shape
+    hh, ww = -(-h // f), -(-w // f)
+    padded = np.pad(mask, ((0, hh * f - h), (0, ww * f - w)))
+    return np.asarray(padded.reshape(hh, f, ww, f).any(axis=(1, 3)))

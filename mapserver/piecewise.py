@@ -28,7 +28,7 @@ from mapserver import align as align_stage
 from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid, densify, route_distance
+from mapserver.grid import Grid, any_in_blocks, densify, route_distance
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -109,9 +109,9 @@ def label_cells(local: OccupancyMap, runs: Sequence[FloatArray]) -> NDArray[np.i
     labels = np.full((h, w), -1, np.int32)
     known = local.state != UNKNOWN
     f = max(1, round(_BLOCK_M / local.resolution))
-    wall = _any_in_blocks(local.state == OCCUPIED, f)
+    wall = any_in_blocks(local.state == OCCUPIED, f)
     hh, ww = wall.shape
-    passable = (_any_in_blocks(local.state == FREE, f) & ~wall).astype(np.float32)
+    passable = (any_in_blocks(local.state == FREE, f) & ~wall).astype(np.float32)
     grid = Grid.of_map(local)
     plus = np.zeros((hh, ww), np.float32)  # run index + 1; 0: not reached yet
     for i, run in enumerate(runs):
@@ -160,22 +160,9 @@ def seen_reach_m(local: OccupancyMap, route: FloatArray) -> float:
     more than the distance, up to a block's diagonal less; a route off the map taken at its
     edge).
     """
-    f = max(1, round(_BLOCK_M / local.resolution))
-    seen = _any_in_blocks(local.state != UNKNOWN, f)
     px = Grid.of_map(local).to_pixel(np.asarray(route, float).reshape(-1, 2))
     distance = route_distance(px, local.state.shape, local.resolution, block_m=_BLOCK_M)
-    if distance is None or not seen.any():
-        return 0.0
-    return float(distance.blocks[seen].max())
-
-
-def _any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:
-    """(ceil(H / f), ceil(W / f)) bool: whether each block of f x f cells of ``mask`` (the last
-    row and column of blocks padded with False) holds a True cell."""
-    h, w = mask.shape
-    hh, ww = -(-h // f), -(-w // f)
-    padded = np.pad(mask, ((0, hh * f - h), (0, ww * f - w)))
-    return np.asarray(padded.reshape(hh, f, ww, f).any(axis=(1, 3)))
+    return 0.0 if distance is None else distance.farthest(local.state != UNKNOWN)
 
 
 def along_route(route: FloatArray, step_m: float) -> FloatArray:
