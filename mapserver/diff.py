@@ -419,6 +419,7 @@ def removal_evidence(
     both_sides_m: float = 0.0,
     route: RouteDistance | None = None,
     depth_per_m: float = 0.0,
+    ray_m: float = 0.0,
 ) -> BoolArray:
     """Removed cells that show a structure is really gone, not a face eroded by grazing rays.
 
@@ -448,6 +449,13 @@ def removal_evidence(
     of the scan that cast it, and rays grazing a face from 20-30 m away draw free cells that
     many decimetres inside it. The distance from the route understates the ray's length.
 
+    Open space beyond the structure in a part the global map never saw (unknown there: the
+    inside of a block drawn as its outline, a room behind a wall) counts only deeper into it
+    than ``depth_m`` and than ``depth_per_m`` times ``ray_m``, the longest rays' length (how far
+    from its route the robot saw anything): rays grazing the face from that far draw free cells
+    that deep behind it, and a wall that is gone opens the view well beyond. Where the global
+    map knew the space free, the robot saw it again through where the structure stood.
+
     Either way, a cell counts only when the robot could have seen it: connected to open space
     through cells seen free, not across a wall seen standing (a solid block whose faces are
     seen all round, its inside free only in a part of a drifted map laid over it).
@@ -457,7 +465,9 @@ def removal_evidence(
     evidence = np.zeros(removed.shape, bool)
     reach = max(1, round(see_through_m / resolution))
     across = round(both_sides_m / resolution)
-    box = box_around(removed, max(reach, across, math.ceil(depth_m / resolution) + 2))
+    behind_m = max(depth_m, depth_per_m * ray_m)
+    longer = reach + math.ceil(behind_m / resolution)
+    box = box_around(removed, max(longer, across, math.ceil(depth_m / resolution) + 2))
     if box is None:
         return evidence
     g_occ = global_state[box] == OCCUPIED
@@ -474,6 +484,11 @@ def removal_evidence(
     # structure looked through.
     fringe = cv2.dilate(g_occ.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
     far_space = np.where(fringe, 0, open_space).astype(np.uint8)
+    # Behind it, in a part the global map never saw: only deeper than grazing rays draw, and
+    # looked for within `reach` beyond that depth.
+    g_unknown = global_state[box] == UNKNOWN
+    far_unseen = far_space & _deep_inside(global_state, UNKNOWN, box, behind_m / resolution)
+    far_space[g_unknown] = 0
     # Cells seen free well inside a structure too thick to see through: the rays that reached
     # them crossed its face in front of them (_FACE_ANCHOR_DEPTH).
     anchors = cand & (depth >= _FACE_ANCHOR_DEPTH * need)
@@ -481,14 +496,9 @@ def removal_evidence(
     # The face cells it can reach lie within `reach` of an anchor: its work in that window.
     near = box_around(anchors, reach)
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        # One-sided line kernels: open space within `reach` before, and after, the cell.
-        size = 2 * reach + 1
-        before = np.zeros((size, size), np.uint8)
-        for t in range(1, reach + 1):
-            before[reach - dr * t, reach - dc * t] = 1
-        # cv2.dilate reads the source at each kernel cell's offset from the anchor (the centre).
-        seen_before = cv2.dilate(far_space, before) > 0
-        seen_after = cv2.dilate(far_space, np.ascontiguousarray(before[::-1, ::-1])) > 0
+        # Open space within `reach` before, and after, the cell.
+        seen_before = _seen_in_line(far_space, far_unseen, (dr, dc), reach, longer)
+        seen_after = _seen_in_line(far_space, far_unseen, (-dr, -dc), reach, longer)
         found |= cand & seen_before & seen_after
         # A face cell with open space on one side and, in line on the other, a cell seen
         # free deep inside with only cells seen free between (no wall seen standing): on the
@@ -537,6 +547,46 @@ def removal_evidence(
     found &= _reached_from_open_space(global_state[box], local_state[box], resolution)
     evidence[box] = found
     return evidence
+
+
+def _seen_in_line(
+    near: NDArray[np.uint8],
+    far: NDArray[np.uint8],
+    step: tuple[int, int],
+    reach: int,
+    longer: int,
+) -> BoolArray:
+    """Cells with a cell of ``near`` within ``reach`` steps of them, or one of ``far`` within
+    ``longer`` steps, going back along ``step`` ((dr, dc)): the open space before each cell."""
+    seen = cv2.dilate(near, _line_kernel(step, reach)) > 0
+    if far.any():
+        seen |= cv2.dilate(far, _line_kernel(step, longer)) > 0
+    return np.asarray(seen)
+
+
+def _line_kernel(step: tuple[int, int], length: int) -> NDArray[np.uint8]:
+    """A one-sided line kernel for cv2.dilate, which reads the source at each kernel cell's
+    offset from the centre: the ``length`` cells at ``-t * step``, t = 1 .. length."""
+    dr, dc = step
+    kernel = np.zeros((2 * length + 1, 2 * length + 1), np.uint8)
+    for t in range(1, length + 1):
+        kernel[length - dr * t, length - dc * t] = 1
+    return kernel
+
+
+def _deep_inside(
+    state: NDArray[np.uint8], value: int, box: tuple[slice, slice], depth_px: float
+) -> BoolArray:
+    """On ``box`` of ``state``: whether each cell holds ``value`` and lies at least
+    ``depth_px`` from any cell that does not (measured on the box grown by that depth, so that
+    cells near the box's edge are not taken as deeper than they are)."""
+    pad = math.ceil(depth_px) + 1
+    rows, cols = box
+    r0, c0 = max(rows.start - pad, 0), max(cols.start - pad, 0)
+    window = (state[r0 : rows.stop + pad, c0 : cols.stop + pad] == value).view(np.uint8)
+    depth = cv2.distanceTransform(window, cv2.DIST_L2, 5)
+    inner = depth[rows.start - r0 : rows.stop - r0, cols.start - c0 : cols.stop - c0]
+    return np.asarray(inner >= depth_px)
 
 
 # How deep (in depth_m) a free cell lies inside a structure for the rays that saw it to count

@@ -460,9 +460,11 @@ def _diff_masks(
             filtered.added, walls, resolution=grid.resolution, within_m=d.along_wall_m
         )
         filtered = diff_stage.DiffMasks(added, filtered.removed)
-    route = None
+    route, ray_m = None, 0.0
     if route_xy is not None and filtered.removed.any():
         route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
+        if route is not None:
+            ray_m = route.farthest(local_state != UNKNOWN)
     evidence = diff_stage.removal_evidence(
         global_state,
         local_state,
@@ -473,6 +475,7 @@ def _diff_masks(
         both_sides_m=d.both_sides_m,
         route=route,
         depth_per_m=_DEPTH_PER_M,
+        ray_m=ray_m,
     )
     return filtered, evidence
 

@@ -20,6 +20,7 @@ from mapserver.cluster import (
 from mapserver.deform import warp_local
 from mapserver.diff import (
     DiffMasks,
+    _deep_inside,
     drop_along_walls,
     drop_small,
     filter_noise,
@@ -686,6 +687,45 @@ def test_a_face_with_a_wall_seen_standing_behind_it_is_no_evidence_of_a_tunnel_b
     evidence = removal_evidence(g, loc, removed, **_SEEN_BOTH_SIDES)
     assert evidence[26:31, 20:45].any()  # the tunnel itself, seen deep
     assert not (evidence & face).any()
+
+
+def test_open_space_behind_a_face_that_the_global_map_never_saw_counts_only_past_grazing_rays() -> (
+    None
+):
+    """A block drawn as its outline (row 40), its inside never seen by the global map. The
+    local map sees the outline free and 0.3 m of free cells behind it: a face eroded by rays
+    grazing it, when they came 30 m (0.0157 m per metre of ray draws them 0.47 m deep), a look
+    through it when the longest came 12 m (0.19 m). A view deep into the block counts either
+    way, and so does space the global map knew free behind a thin wall."""
+    g = np.full((80, 100), UNKNOWN, np.uint8)
+    g[:40, :] = FREE
+    g[40, :] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:47, :] = FREE  # up to 0.3 m behind the outline
+    line = (g == OCCUPIED) & (loc == FREE)
+    kw = {**_SEEN_BOTH_SIDES, "depth_per_m": 0.0157}
+    assert removal_evidence(g, loc, line, ray_m=12.0, **kw)[40, 10:90].all()
+    assert not removal_evidence(g, loc, line, ray_m=30.0, **kw).any()
+    opened = loc.copy()
+    opened[47:, :] = FREE  # the robot saw deep into the block: the wall is gone
+    assert removal_evidence(g, opened, line, ray_m=30.0, **kw)[40, 10:90].all()
+    # Looked for that deep even when the both-sides rule's window is not there to widen the box.
+    alone = {**kw, "both_sides_m": 0.0}
+    assert removal_evidence(g, opened, line, ray_m=30.0, **alone)[40, 10:90].all()
+    known = g.copy()
+    known[41:, :] = FREE  # a thin wall between two spaces the global map knew
+    assert removal_evidence(known, loc, line, ray_m=30.0, **kw)[40, 10:90].all()
+
+
+def test_how_deep_inside_is_measured_past_the_edge_of_the_window() -> None:
+    """A strip of unknown cells 8 wide (columns 10-17) seen in a window that starts at column
+    12: its cells lie at most 4 cells from a known one, which the window alone does not show."""
+    state = np.full((20, 30), FREE, np.uint8)
+    state[:, 10:18] = UNKNOWN
+    deep = _deep_inside(state, UNKNOWN, (slice(0, 20), slice(12, 30)), 4.0)
+    assert deep.shape == (20, 18)
+    assert deep[:, 1:3].all()  # columns 13 and 14, 4 cells from columns 9 and 18
+    assert not deep[:, 0].any() and not deep[:, 3:].any()
 
 
 def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -> None:
