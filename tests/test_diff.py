@@ -744,6 +744,12 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     far = removal_evidence(g, loc, cells, route=RouteDistance(np.full(g.shape, 20.0), 1), **kw)
     assert near[22:24, 20:80].all() and not far.any()
     assert removal_evidence(g, loc, cells, **_SEEN_BOTH_SIDES)[22:24, 20:80].all()
+    # Near the route, but the rays that skim a face come along it from as far as the sensor
+    # reaches: three quarters of 30 m asks 0.35 m everywhere; of 12 m, 0.14 m, under depth_m.
+    at_2m = RouteDistance(np.full(g.shape, 2.0), 1)
+    assert removal_evidence(g, loc, cells, route=at_2m, ray_m=12.0, **kw)[22:24, 20:80].all()
+    assert not removal_evidence(g, loc, cells, route=at_2m, ray_m=30.0, **kw).any()
+    assert not removal_evidence(g, loc, cells, ray_m=30.0, **kw).any()
     # 0.3 m deep: the face cells in front of cells 0.225 m and more inside (1.5 x 0.15 m) are
     # evidence through the rays that crossed them, near the route; 20 m away the anchors must
     # lie 1.5 x 0.31 m inside, and none does.
