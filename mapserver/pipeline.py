@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from functools import cache, partial
+from functools import cache, cached_property, partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -174,6 +174,15 @@ class _Inputs:
     local: OccupancyMap
     global_map: OccupancyMap
     route_slam: np.ndarray | None  # the robot's route (N, 2), slam frame; None without one
+
+    @cached_property
+    def reach_m(self) -> float:
+        """How far from its route the robot saw anything (``piecewise.seen_reach_m``, in the
+        slam frame where map and route agree whatever the alignment): the length of its
+        longest rays, a lower bound of its sensor's range; 0 without a route. On first use."""
+        if self.route_slam is None:
+            return 0.0
+        return piecewise.seen_reach_m(self.local, self.route_slam)
 
 
 def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inputs:
@@ -418,10 +427,12 @@ def _diff_masks(
     local: OccupancyMap,
     global_map: OccupancyMap,
     route_xy: np.ndarray | None = None,
+    reach_m: Callable[[], float] = lambda: 0.0,
 ) -> tuple[diff_stage.DiffMasks, np.ndarray]:
     """The filtered added/removed masks of the local map against a global state (on ``grid``),
     and the removal evidence (its depth growing with the distance from the route ``route_xy``,
-    (N, 2) nav2, when given: ``_DEPTH_PER_M``)."""
+    (N, 2) nav2, when given, and with the robot's longest rays, ``reach_m()``, asked only when
+    there are removed cells: ``_DEPTH_PER_M``)."""
     d = config.pipeline.diff
     tolerance_map = None
     if d.max_misfit_tolerance_m > d.tolerance_m:
@@ -461,10 +472,10 @@ def _diff_masks(
         )
         filtered = diff_stage.DiffMasks(added, filtered.removed)
     route, ray_m = None, 0.0
-    if route_xy is not None and filtered.removed.any():
-        route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
-        if route is not None:
-            ray_m = route.farthest(local_state != UNKNOWN)
+    if filtered.removed.any():
+        ray_m = reach_m()
+        if route_xy is not None:
+            route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
     evidence = diff_stage.removal_evidence(
         global_state,
         local_state,
@@ -1154,6 +1165,7 @@ def _diff(
         inputs.local,
         inputs.global_map,
         route_xy,
+        lambda: inputs.reach_m,
     )
 
 
@@ -1304,6 +1316,7 @@ def _judged_on_current(
         local,
         inputs.global_map,
         found.route_xy,
+        lambda: inputs.reach_m,
     )
     judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
     if drifted and judged:
