@@ -443,14 +443,15 @@ def removal_evidence(
     Open space on both sides does not count within ``depth_m`` of a structure's inside deeper
     than ``depth_m`` that the robot never saw: along a ragged face, not through the structure.
 
-    With ``route`` and ``depth_per_m`` > 0, the depth asked of a cell (by the depth rule and of
-    the face rule's anchors) grows to ``depth_per_m`` times its distance from the route where
-    that is more: a ray's drawn position is off across it by its length times the angle error
-    of the scan that cast it, and rays grazing a face from 20-30 m away draw free cells that
-    many decimetres inside it. The distance from the route understates the ray's length: the
-    rays that skim a face come along it, from as far as the sensor reaches, so with ``ray_m``
-    (the longest rays' length) the depth asked is everywhere at least ``depth_per_m`` times
-    :data:`_SKIM_SHARE` of it.
+    The depth asked of a cell (by the depth rule and of the face rule's anchors) grows with
+    the length of the rays that may have drawn it: a ray's drawn position is off across it by
+    its length times the angle error of the scan that cast it (``depth_per_m``), and rays
+    grazing a face from 20-30 m away draw free cells that many decimetres inside it. With
+    ``route``, to ``depth_per_m`` times the cell's distance from the route where that is more;
+    that distance understates the length of the rays that skim a face, which come along it from
+    as far as the sensor reaches, so with ``ray_m`` (the longest rays' length), with or without
+    a route, the depth asked is everywhere at least ``depth_per_m`` times :data:`_SKIM_SHARE`
+    of it.
 
     Open space beyond the structure in a part the global map never saw (unknown there: the
     inside of a block drawn as its outline, a room behind a wall) counts only deeper into it
@@ -490,7 +491,10 @@ def removal_evidence(
     # Behind it, in a part the global map never saw: only deeper than grazing rays draw, and
     # looked for within `reach` beyond that depth.
     g_unknown = global_state[box] == UNKNOWN
+    far_unseen: NDArray[np.uint8] | None
     far_unseen = far_space & _deep_inside(global_state, UNKNOWN, box, behind_m / resolution)
+    if not far_unseen.any():
+        far_unseen = None
     far_space[g_unknown] = 0
     # Cells seen free well inside a structure too thick to see through: the rays that reached
     # them crossed its face in front of them (_FACE_ANCHOR_DEPTH).
@@ -554,9 +558,11 @@ def removal_evidence(
 
 # The share of the longest rays' length (ray_m) that removal_evidence takes for the rays that
 # skim a face near the route, which come along it from afar: the depth asked of a removed cell
-# is everywhere at least depth_per_m times this much of ray_m. 0.75 keeps it under depth_m
-# (0.15 m) for a 12 m lidar (0.14 m), so there nothing changes; a 20 m one asks 0.24 m, a 30 m
-# one 0.35 m. Session 14, with the pipeline's depth_per_m (0.0157): the 30 m lidar's ordinary
+# is everywhere at least depth_per_m times this much of ray_m. The pipeline's ray_m is how far
+# from the route the local map saw anything (piecewise.seen_reach_m: a lower bound of the
+# range, 11.9-12.3 m for a 12 m lidar, less among walls that close in). 0.75 keeps the depth
+# under depth_m (0.15 m) up to 12.7 m, so with a 12 m lidar nothing changes; a 20 m one asks
+# 0.24 m, a 30 m one 0.35 m. Session 14, with the pipeline's depth_per_m (0.0157): the 30 m lidar's ordinary
 # sessions (seed 1307) 26 -> 16 false removals, F1 0.884 -> 0.918, the 20 m drift set (seed
 # 1303) 11 -> 9, no change lost in either. The whole length (1.0) took 3 and 2 more false
 # removals off those two, but a 12 m set then asks 0.19 m and lost 2 of seed 99's 152 changes
@@ -565,17 +571,18 @@ _SKIM_SHARE = 0.75
 
 
 def _seen_in_line(
-    near: NDArray[np.uint8],
-    far: NDArray[np.uint8],
+    space: NDArray[np.uint8],
+    deep: NDArray[np.uint8] | None,
     step: tuple[int, int],
     reach: int,
     longer: int,
 ) -> BoolArray:
-    """Cells with a cell of ``near`` within ``reach`` steps of them, or one of ``far`` within
-    ``longer`` steps, going back along ``step`` ((dr, dc)): the open space before each cell."""
-    seen = cv2.dilate(near, _line_kernel(step, reach)) > 0
-    if far.any():
-        seen |= cv2.dilate(far, _line_kernel(step, longer)) > 0
+    """Cells with a cell of ``space`` within ``reach`` steps of them, or one of ``deep`` (when
+    given) within ``longer`` steps, going back along ``step`` ((dr, dc)): the open space before
+    each cell."""
+    seen = cv2.dilate(space, _line_kernel(step, reach)) > 0
+    if deep is not None:
+        seen |= cv2.dilate(deep, _line_kernel(step, longer)) > 0
     return np.asarray(seen)
 
 
@@ -600,8 +607,8 @@ def _deep_inside(
     r0, c0 = max(rows.start - pad, 0), max(cols.start - pad, 0)
     window = (state[r0 : rows.stop + pad, c0 : cols.stop + pad] == value).view(np.uint8)
     depth = cv2.distanceTransform(window, cv2.DIST_L2, 5)
-    inner = depth[rows.start - r0 : rows.stop - r0, cols.start - c0 : cols.stop - c0]
-    return np.asarray(inner >= depth_px)
+    inner = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
+    return np.asarray((depth[inner] >= depth_px) & (window[inner] > 0))
 
 
 # How deep (in depth_m) a free cell lies inside a structure for the rays that saw it to count

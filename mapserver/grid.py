@@ -258,6 +258,8 @@ class RouteDistance:
         block (0 when none is True): how far from the route the map saw anything, given its
         known cells."""
         blocks = any_in_blocks(mask, self.block)
+        if blocks.shape != self.blocks.shape:
+            raise ValueError(f"a mask of {mask.shape} cells is not on this route's grid")
         return float(self.blocks[blocks].max()) if blocks.any() else 0.0
 
 

@@ -712,6 +712,20 @@ def test_open_space_behind_a_face_that_the_global_map_never_saw_counts_only_past
     # Looked for that deep even when the both-sides rule's window is not there to widen the box.
     alone = {**kw, "both_sides_m": 0.0}
     assert removal_evidence(g, opened, line, ray_m=30.0, **alone)[40, 10:90].all()
+    # Whatever the rays' length, a cell just past the fringe (0.1 m) is not behind the face.
+    shallow = np.where(np.arange(80)[:, None] <= 42, loc, UNKNOWN).astype(np.uint8)
+    assert not removal_evidence(g, shallow, line, ray_m=0.0, **kw).any()
+    # Free 0.4 m behind the outline is still within what 30 m rays draw (0.47 m).
+    loc_04 = loc.copy()
+    loc_04[47:49, :] = FREE
+    assert not removal_evidence(g, loc_04, line, ray_m=30.0, **kw).any()
+    # Cells that deep are looked for up to 0.35 m past that depth: 17 cells from the outline
+    # (a patch of free cells seen beyond an unseen gap, 0.85 m behind it), not 18.
+    for first, seen in ((57, True), (58, False)):
+        patch = loc.copy()
+        patch[first:61, :] = FREE
+        found = removal_evidence(g, patch, line, ray_m=30.0, **kw)
+        assert found[40, 10:90].all() if seen else not found.any()
     known = g.copy()
     known[41:, :] = FREE  # a thin wall between two spaces the global map knew
     assert removal_evidence(known, loc, line, ray_m=30.0, **kw)[40, 10:90].all()
@@ -726,6 +740,10 @@ def test_how_deep_inside_is_measured_past_the_edge_of_the_window() -> None:
     assert deep.shape == (20, 18)
     assert deep[:, 1:3].all()  # columns 13 and 14, 4 cells from columns 9 and 18
     assert not deep[:, 0].any() and not deep[:, 3:].any()
+    # No depth at all: the cells that hold the value, no others.
+    assert np.array_equal(
+        _deep_inside(state, UNKNOWN, (slice(0, 20), slice(0, 30)), 0.0), state == UNKNOWN
+    )
 
 
 def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -> None:
@@ -750,6 +768,8 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     assert removal_evidence(g, loc, cells, route=at_2m, ray_m=12.0, **kw)[22:24, 20:80].all()
     assert not removal_evidence(g, loc, cells, route=at_2m, ray_m=30.0, **kw).any()
     assert not removal_evidence(g, loc, cells, ray_m=30.0, **kw).any()
+    # Three quarters of 20 m asks 0.24 m: the row 0.2 m deep is not enough.
+    assert not removal_evidence(g, loc, cells, route=at_2m, ray_m=20.0, **kw).any()
     # 0.3 m deep: the face cells in front of cells 0.225 m and more inside (1.5 x 0.15 m) are
     # evidence through the rays that crossed them, near the route; 20 m away the anchors must
     # lie 1.5 x 0.31 m inside, and none does.
@@ -758,6 +778,9 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     near = removal_evidence(g, loc, deeper, route=RouteDistance(np.full(g.shape, 2.0), 1), **kw)
     far = removal_evidence(g, loc, deeper, route=RouteDistance(np.full(g.shape, 20.0), 1), **kw)
     assert near[20:22, 20:80].all() and not far.any()
+    # The anchors are asked the depth of the longest rays too: none lies 1.5 x 0.35 m inside.
+    at_2m_30 = removal_evidence(g, loc, deeper, route=at_2m, ray_m=30.0, **kw)
+    assert not at_2m_30.any()
     # The distance from a route along row 10 (0.25 m blocks of 5 cells): a cell 2.5 m below.
     route = route_distance(np.array([[0.0, 10.0], [99.0, 10.0]]), g.shape, RES)
     assert route is not None

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from mapserver.grid import Grid
+import numpy as np
+import pytest
+
+from mapserver.grid import Grid, RouteDistance, any_in_blocks, route_distance
 
 
 def test_sample_reads_the_nearest_pixel_and_fills_off_the_grid() -> None:
@@ -16,3 +19,31 @@ def test_sample_reads_the_nearest_pixel_and_fills_off_the_grid() -> None:
     assert values.tolist() == [0, 11, 6, 255, 255]
     assert values.dtype == np.uint8
     assert grid.sample(image > 5, xy, False).tolist() == [False, True, True, False, False]
+
+
+def test_blocks_that_hold_a_cell_of_a_mask() -> None:
+    """Blocks of 3 x 3 cells over a 7 x 8 mask: the last row and column of blocks are the
+    padded ones (1 row, 2 columns of cells)."""
+    mask = np.zeros((7, 8), bool)
+    mask[6, 7] = True  # the corner cell, in the padded block
+    mask[1, 4] = True
+    blocks = any_in_blocks(mask, 3)
+    assert blocks.shape == (3, 3)
+    assert blocks.tolist() == [[False, True, False], [False, False, False], [False, False, True]]
+    assert not any_in_blocks(np.zeros((7, 8), bool), 3).any()
+
+
+def test_how_far_from_the_route_a_map_saw_anything() -> None:
+    """A route along row 0 of a 40 x 40 grid at 0.1 m (0.2 m blocks of 2 cells): cells seen at
+    row 30 lie 3.0 m from it; the reach is their distance on their block, never more and at
+    most a block's diagonal less; nothing seen, 0; a mask not on the grid, an error."""
+    route = route_distance(np.array([[0.0, 0.0], [39.0, 0.0]]), (40, 40), 0.1, block_m=0.2)
+    assert isinstance(route, RouteDistance)
+    seen = np.zeros((40, 40), bool)
+    seen[30, 12:15] = True
+    assert 3.0 - 0.2 * math.sqrt(2) <= route.farthest(seen) <= 3.0
+    seen[5, 5] = True  # nearer cells do not lower it
+    assert 3.0 - 0.2 * math.sqrt(2) <= route.farthest(seen) <= 3.0
+    assert route.farthest(np.zeros((40, 40), bool)) == 0.0
+    with pytest.raises(ValueError):
+        route.farthest(np.ones((20, 40), bool))

@@ -19,7 +19,7 @@ from mapserver.config import Config, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
-from mapserver.maps import FREE, from_states
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.pipeline import process_bundle
 
 TRUE = Transform2D(-0.9, 3.0, 8.0)
@@ -281,3 +281,27 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
         assert [d.kind for d in found] == (["removed"] if kind == "removed" else [])
         still = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=False)
         assert [d.kind for d in still] == [kind]
+
+
+def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> None:
+    """A block (rows 40 on) whose face the local map sees free 0.3 m deep, no route: evidence
+    that it is gone when the robot's rays were short, none when they reached 30 m (three
+    quarters of that at 0.0157 m per metre asks 0.35 m)."""
+    g = np.full((80, 100), FREE, np.uint8)
+    g[40:, :] = OCCUPIED
+    loc = np.full(g.shape, UNKNOWN, np.uint8)
+    loc[:46, :] = FREE
+    grid = Grid(0.0, 0.0, 0.05, 100, 80)
+    local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
+    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
+    roi = np.ones(g.shape, bool)
+
+    def compare(reach_m: float) -> tuple[diff_stage.DiffMasks, np.ndarray]:
+        return pipeline._diff_masks(
+            g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, reach_m=lambda: reach_m
+        )
+
+    near_masks, near = compare(8.0)
+    far_masks, far = compare(30.0)
+    assert near_masks.removed[43:46, 10:90].all() and far_masks.removed[43:46, 10:90].all()
+    assert near[44:46, 10:90].all() and not far.any()
