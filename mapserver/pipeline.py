@@ -179,7 +179,8 @@ class _Inputs:
     def reach_m(self) -> float:
         """How far from its route the robot saw anything (``piecewise.seen_reach_m``, in the
         slam frame where map and route agree whatever the alignment): the length of its
-        longest rays, a lower bound of its sensor's range; 0 without a route. On first use."""
+        longest rays, a lower bound of its sensor's range; 0 without a route. Worked out on
+        first use, once for the removal evidence and the fold check of both comparisons."""
         if self.route_slam is None:
             return 0.0
         return piecewise.seen_reach_m(self.local, self.route_slam)
@@ -651,6 +652,7 @@ def _refit(
     added: np.ndarray,
     config: Config,
     local: OccupancyMap,
+    reach_m: Callable[[], float],
 ) -> list[cluster_stage.Difference]:
     """The differences a small local re-fit of the walls around them does not explain, nor a
     move of the added cells around them onto a wall seen in place (a wall drawn twice), nor,
@@ -659,7 +661,8 @@ def _refit(
     the place (``local``'s cells there seen on that pass, its run within the sensor's reach:
     a fold; for a removed one, unless that pass drew the structure's place open too), nor for
     a removed one deep in the structure the faces around it seen from behind (a fold,
-    ``_FOLD_DEPTH_M``)."""
+    ``_FOLD_DEPTH_M``). ``reach_m()``: how far from its route the robot saw anything, asked
+    when a fold check needs it."""
     d = config.pipeline.diff
     view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
     global_walls = view.structure | (view.state == OCCUPIED)
@@ -673,14 +676,9 @@ def _refit(
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
 
-    @cache
     def sensor_reach_m() -> float:
-        """How far from its route the robot saw anything, at least ``_MIN_PASS_REACH_M`` (on
-        first use)."""
-        assert aligned.pieces is not None
-        # The pieces' runs are the route cut in order, each starting where the last ended.
-        route = np.concatenate([piece.run for piece in aligned.pieces.pieces])
-        return max(_MIN_PASS_REACH_M, piecewise.seen_reach_m(local, route))
+        """The reach a pass of the route saw to: at least ``_MIN_PASS_REACH_M``."""
+        return max(_MIN_PASS_REACH_M, reach_m())
 
     def explained(diff: cluster_stage.Difference) -> bool:
         assert diff.cells is not None
@@ -1323,7 +1321,7 @@ def _judged_on_current(
         # The re-fit's checks read the bundle's own version of the map (the view), not the
         # current one: where a published change differs, a difference's explanation may lean
         # on what the robot's copy showed.
-        judged = _refit(judged, aligned, fleet_masks.added, config, local)
+        judged = _refit(judged, aligned, fleet_masks.added, config, local, lambda: inputs.reach_m)
     return judged
 
 
@@ -1496,7 +1494,9 @@ def process_bundle(
     if refit and differences:
         differences = stages.run(
             "refit",
-            partial(_refit, differences, aligned, masks.added, config, local),
+            partial(
+                _refit, differences, aligned, masks.added, config, local, lambda: inputs.reach_m
+            ),
         )
     found = _Found(region, masks, differences, refit, route_xy)
 

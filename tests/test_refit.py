@@ -289,7 +289,7 @@ def _refit(
     states ``glob`` (local states ``local_state`` on the same grid at ``res``, its origin at
     0, 0) after a drift correction of 0.3 m, in ``pieces`` when ``in_pieces``; the differences
     it keeps."""
-    from mapserver import pipeline
+    from mapserver import piecewise, pipeline
     from mapserver.align import GlobalView
     from mapserver.config import Config
     from mapserver.geometry import Transform2D
@@ -309,7 +309,15 @@ def _refit(
         warnings=(),
     )
     no_added = np.zeros(glob.shape, bool)
-    return list(pipeline._refit([found], aligned, no_added, Config(), slam_map))
+
+    def reach_m() -> float:
+        # As the pipeline's: how far from the route (the pieces' runs joined) the map saw.
+        if pieces is None:
+            return 0.0
+        route = np.concatenate([piece.run for piece in pieces.pieces])
+        return piecewise.seen_reach_m(slam_map, route)
+
+    return list(pipeline._refit([found], aligned, no_added, Config(), slam_map, reach_m))
 
 
 def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() -> None:
