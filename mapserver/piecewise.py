@@ -445,6 +445,7 @@ def another_pass_explains(
     min_score: float = 0.6,
     share: float = 0.8,
     open_there: Callable[[FloatArray], NDArray[np.bool_]] | None = None,
+    near_ratio: float = math.inf,
 ) -> bool:
     """Whether a difference at nav2 points ``xy`` (N, 2) is a fold: seen on another pass.
 
@@ -465,6 +466,9 @@ def another_pass_explains(
     ``xy``, had it seen it standing, the map is open as well; two passes agree (a structure
     really gone, seen on both). Beyond its reach the place back is some other pass's floor,
     and says nothing of this one.
+
+    ``near_ratio``: a pass whose run came farther than half ``reach_m`` from them explains
+    them only when it came within that many times as near as the piece's own run did.
     """
     grid = Grid.of_map(local)
     best: tuple[int, Piece, FloatArray] | None = None
@@ -477,10 +481,13 @@ def another_pass_explains(
         return False
     _, owner, slam = best
     centre = slam.mean(axis=0, keepdims=True)
+    own_m = float(np.hypot(*(owner.run - centre).T).min()) if len(owner.run) else math.inf
     for q in pieces.pieces:
         if q.score < min_score or abs(q.index - owner.index) < 2 or len(q.run) < 2:
             continue
-        if float(np.hypot(*(q.run - centre).T).min()) > reach_m:
+        if float(np.hypot(*(q.run - centre).T).min()) > min(
+            reach_m, max(near_ratio * own_m, reach_m / 2)
+        ):
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue

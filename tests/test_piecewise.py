@@ -696,15 +696,16 @@ def _fold_pieces(
     other_shift_m: float = 1.0,
     other_run_x: tuple[float, float] = (10.0, 20.0),
     other_score: float = 0.9,
+    run_y: float = 5.0,
 ) -> tuple[OccupancyMap, piecewise.Pieces]:
     """A 20 m x 10 m local map at 0.1 m: the west half one trusted piece (identity, its run
-    along y = 5), and another aligned piece whose transform puts everything ``other_shift_m``
-    north, its run along y = 5 over ``other_run_x``."""
+    along y = ``run_y``), and another aligned piece whose transform puts everything
+    ``other_shift_m`` north, its run along y = 5 over ``other_run_x``."""
     state = np.full((100, 200), FREE, np.uint8)
     local = from_states(state, 0.1, (0.0, 0.0, 0.0))
     west = np.zeros(state.shape, bool)
     west[:, :100] = True
-    run = np.array([[0.0, 5.0], [10.0, 5.0]])
+    run = np.column_stack([np.linspace(0.0, 10.0, 101), np.full(101, run_y)])
     other_run = np.array([[other_run_x[0], 5.0], [other_run_x[1], 5.0]])
     first = piecewise.Piece(0, west, Transform2D(0.0, 0.0, 0.0), 0.9, True, 50.0, (0.0, 5.0), run)
     other = piecewise.Piece(
@@ -745,6 +746,23 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     # A pass that did not align (under min_score) gives no transform to trust.
     weak = _fold_pieces(other_score=0.4)
     assert not piecewise.another_pass_explains(*weak, xy, _wall_at_y(6.0))
+
+
+def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() -> None:
+    """The cells at (7.5..8.5, 5) as above, the other pass's run 2.0 m from their centre, a
+    3 m reach. With ``near_ratio`` 4, the piece's own run 1 m from them (y = 4): that pass came
+    near enough to have drawn them. The piece's own run 0.4 m from them (y = 4.6): the robot
+    saw the place from five times nearer than that pass did, and what it drew there is its
+    own view. Within half the reach (a 5 m one), any pass is near enough."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    wall = _wall_at_y(6.0)
+    near_own = _fold_pieces(run_y=4.0)
+    assert piecewise.another_pass_explains(*near_own, xy, wall, reach_m=3.0, near_ratio=4.0)
+    assert not piecewise.another_pass_explains(*near_own, xy, wall, reach_m=3.0, near_ratio=1.5)
+    close_own = _fold_pieces(run_y=4.6)
+    assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0)
+    assert not piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0, near_ratio=4.0)
+    assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=5.0, near_ratio=4.0)
 
 
 def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:

@@ -334,6 +334,7 @@ def _refit_in_pieces(
     other_drew: int = OCCUPIED,
     wall_beside: bool = False,
     seen_north_m: float = 0.0,
+    own_run_x: tuple[float, float] = (0.0, 10.0),
 ) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
@@ -344,7 +345,8 @@ def _refit_in_pieces(
     the place open too; UNKNOWN, it did not see it. ``wall_beside``: a local wall 0.1-0.2 m south
     of the place back (within ``tolerance_m``, 0.15 m, of half of it). ``seen_north_m``:
     the slam map also saw that far north of the hall (seen free; a sensor that reaches
-    further than the hall's 5 m)."""
+    further than the hall's 5 m). ``own_run_x``: the west piece's run, two points along
+    y = 5 m (by default 2 m from the difference's centre, at x = 10 m)."""
     from mapserver import piecewise
     from mapserver.cluster import Difference
     from mapserver.geometry import Transform2D
@@ -375,7 +377,7 @@ def _refit_in_pieces(
                 True,
                 50.0,
                 (0.0, 5.0),
-                np.array([[0.0, 5.0], [10.0, 5.0]]),
+                np.array([[own_run_x[0], 5.0], [own_run_x[1], 5.0]]),
             ),
             piecewise.Piece(
                 2,
@@ -416,9 +418,23 @@ def test_the_other_pass_counts_as_far_as_the_sensor_saw(kind: str) -> None:
     along y = 5) saw the place from there, and that pass explains it; one whose map reaches
     10 m did not. The map's reach is a lower bound of the sensor's (walls close in): a pass
     11 m off counts whatever it says, a common lidar's 12 m."""
-    assert _refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0) == []
-    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=5.0)) == 1
-    assert _refit_in_pieces(kind, (19.0, 30.0)) == []
+    # The robot's own run 5 m from the difference (x 0..3 m): that pass, 17 m off, is not
+    # more than four times as far (see the next test).
+    own = (0.0, 3.0)
+    assert _refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0, own_run_x=own) == []
+    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=5.0, own_run_x=own)) == 1
+    assert _refit_in_pieces(kind, (19.0, 30.0), own_run_x=own) == []
+
+
+@pytest.mark.parametrize(("kind", "stays"), [("added", 1), ("removed", 0)])
+def test_an_obstacle_the_robot_saw_from_near_is_not_a_far_pass_fold(kind: str, stays: int) -> None:
+    """The other pass's run 17 m from the difference, a lidar that saw 25 m: past half its
+    reach. The robot's own run came 2 m from it: an added one there is what the robot saw
+    from near (a pass more than four times as far drew nothing over it) and stays; a removed
+    one's free cells may be drawn by rays from afar, and that pass explains it."""
+    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0)) == stays
+    # That pass 6 m off (x from 14 m): within half the reach, it saw the place as well.
+    assert _refit_in_pieces(kind, (14.0, 30.0), seen_north_m=20.0) == []
 
 
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
