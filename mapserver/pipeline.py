@@ -753,8 +753,10 @@ def _seen_on_another_pass(
 ) -> bool:
     """Whether another pass of a route aligned in pieces, its run within ``reach_m()`` of
     them (the sensor's), saw ``diff``'s cells as no change: an added one's on a global wall
-    (``near_wall()``), a removed one's on the open floor (free, off every wall) unless that
-    pass drew the structure's place open too (:func:`_open_in`: both passes saw it gone)."""
+    (``near_wall()``; that pass, past half the reach, no more than ``_PASS_NEAR_RATIO`` times
+    as far from them as the robot's own run), a removed one's on the open floor (free, off
+    every wall) unless that pass drew the structure's place open too (:func:`_open_in`: both
+    passes saw it gone)."""
     assert diff.cells is not None
     if aligned.pieces is None:
         return False
