@@ -468,7 +468,9 @@ def another_pass_explains(
     and says nothing of this one.
 
     ``near_ratio``: a pass whose run came farther than half ``reach_m`` from them explains
-    them only when it came within that many times as near as the piece's own run did.
+    them only when its run came no more than ``near_ratio`` times as far from them as the
+    piece's own run (both from their centre, in the slam frame; ``inf``, the default, or a
+    piece without a run: no such limit).
     """
     grid = Grid.of_map(local)
     best: tuple[int, Piece, FloatArray] | None = None
@@ -481,13 +483,14 @@ def another_pass_explains(
         return False
     _, owner, slam = best
     centre = slam.mean(axis=0, keepdims=True)
-    own_m = float(np.hypot(*(owner.run - centre).T).min()) if len(owner.run) else math.inf
+    limit_m = reach_m
+    if len(owner.run) and math.isfinite(near_ratio):
+        own_m = float(np.hypot(*(owner.run - centre).T).min())
+        limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
     for q in pieces.pieces:
         if q.score < min_score or abs(q.index - owner.index) < 2 or len(q.run) < 2:
             continue
-        if float(np.hypot(*(q.run - centre).T).min()) > min(
-            reach_m, max(near_ratio * own_m, reach_m / 2)
-        ):
+        if float(np.hypot(*(q.run - centre).T).min()) > limit_m:
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue

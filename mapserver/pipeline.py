@@ -607,18 +607,18 @@ _FLOOR_SEEN_SHARE = 0.95
 _MIN_PASS_REACH_M = 12.0
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
-# An added one, though, is seen where rays end, and the pass that drew it saw it: when the
-# robot's own run (the piece's) came by four times nearer than a pass whose run came farther
-# than half the reach, the robot's close view is what the map shows there, and that pass
-# explains nothing (a real obstacle near a wall, taken onto the wall by a far pass's
-# transform by coincidence). Census over 12 drift sets (session 15): of the added
-# differences a pass explained, 10 of 24 real ones against 3 of 115 others had every
-# explaining pass that far (more than four times as far as the robot's run, and more than
-# half the reach: a pass that near saw the place well, and a run 0.5 m off leaves little
-# distance to compare). Benchmark against session 14: 14 more changes found for 9 more false
-# positives; F1 up on 11 sets (six drift sets +0.007), down on 3 by 0.002-0.005, the rest as
-# before. Not for a removed one: its free cells are drawn by rays crossing from afar, and
-# there the census was 3 real against 10 others.
+# An added one, though, is a wall where rays ended: when the robot's own run (the piece's)
+# passed more than four times nearer to it than a pass whose run came no nearer than half the
+# reach, the map there is what the robot saw from near, and that pass explains nothing (a real
+# obstacle near a wall, laid onto the wall by a far pass's transform by coincidence). Census
+# over 12 drift sets (session 15; the pipeline's fold checks logged with each difference's
+# truth, see its closing note): of the added differences a pass explained, 10 of 24 real ones
+# against 3 of 115 others had every explaining pass that far (more than four times as far as
+# the robot's run and more than half the reach: a pass that near saw the place well, and a
+# run 0.5 m off leaves little distance to compare). Benchmark against session 14: 14 more
+# changes found for 9 more false positives; F1 up on 11 sets (by 0.007 on each of six drift
+# sets), down on 3 by 0.002-0.005, the rest as before. Not for a removed one: its free cells
+# are drawn by rays crossing from afar, and there the census was 3 real against 10 others.
 _PASS_NEAR_RATIO = 4.0
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
 # building's structure (a wall or block 0.8 m thick or more), most of whose bounding local

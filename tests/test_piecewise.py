@@ -759,6 +759,8 @@ def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() 
     near_own = _fold_pieces(run_y=4.0)
     assert piecewise.another_pass_explains(*near_own, xy, wall, reach_m=3.0, near_ratio=4.0)
     assert not piecewise.another_pass_explains(*near_own, xy, wall, reach_m=3.0, near_ratio=1.5)
+    # Never past the reach, however far the piece's own run.
+    assert not piecewise.another_pass_explains(*near_own, xy, wall, reach_m=1.8, near_ratio=4.0)
     close_own = _fold_pieces(run_y=4.6)
     assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0)
     assert not piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0, near_ratio=4.0)

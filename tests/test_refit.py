@@ -429,12 +429,14 @@ def test_the_other_pass_counts_as_far_as_the_sensor_saw(kind: str) -> None:
 @pytest.mark.parametrize(("kind", "stays"), [("added", 1), ("removed", 0)])
 def test_an_obstacle_the_robot_saw_from_near_is_not_a_far_pass_fold(kind: str, stays: int) -> None:
     """The other pass's run 17 m from the difference, a lidar that saw 25 m: past half its
-    reach. The robot's own run came 2 m from it: an added one there is what the robot saw
+    reach. The robot's own run came to 2 m from it: an added one there is what the robot saw
     from near (a pass more than four times as far drew nothing over it) and stays; a removed
     one's free cells may be drawn by rays from afar, and that pass explains it."""
-    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0)) == stays
-    # That pass 6 m off (x from 14 m): within half the reach, it saw the place as well.
-    assert _refit_in_pieces(kind, (14.0, 30.0), seen_north_m=20.0) == []
+    own = (0.0, 6.0)  # the run's end 2 m from it (distances are to the run's points)
+    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0, own_run_x=own)) == stays
+    # That pass 11 m off (x from 19 m), more than four times 2 m but within half the 24.9 m
+    # reach: it saw the place as well.
+    assert _refit_in_pieces(kind, (19.0, 30.0), seen_north_m=20.0, own_run_x=own) == []
 
 
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
