@@ -53,6 +53,7 @@ from mapserver.fleet.observe import Observation
 from mapserver.geometry import Pose2D, Transform2D, fit_rigid
 from mapserver.grid import (
     Grid,
+    RouteDistance,
     box_around,
     box_of_cells,
     landing_box,
@@ -427,13 +428,13 @@ def _diff_masks(
     config: Config,
     local: OccupancyMap,
     global_map: OccupancyMap,
-    route_xy: np.ndarray | None = None,
+    route: Callable[[], RouteDistance | None] = lambda: None,
     reach_m: Callable[[], float] = lambda: 0.0,
 ) -> tuple[diff_stage.DiffMasks, np.ndarray]:
     """The filtered added/removed masks of the local map against a global state (on ``grid``),
-    and the removal evidence (its depth growing with the distance from the route ``route_xy``,
-    (N, 2) nav2, when given, and with the robot's longest rays, ``reach_m()``, asked only when
-    there are removed cells: ``_DEPTH_PER_M``)."""
+    and the removal evidence (its depth growing with the distance from the route, ``route()``
+    on ``grid`` (:func:`_route_on`), and with the robot's longest rays, ``reach_m()``, both
+    asked only when there are removed cells: ``_DEPTH_PER_M``)."""
     d = config.pipeline.diff
     tolerance_map = None
     if d.max_misfit_tolerance_m > d.tolerance_m:
@@ -472,11 +473,9 @@ def _diff_masks(
             filtered.added, walls, resolution=grid.resolution, within_m=d.along_wall_m
         )
         filtered = diff_stage.DiffMasks(added, filtered.removed)
-    route, ray_m = None, 0.0
+    on_route, ray_m = None, 0.0
     if filtered.removed.any():
-        ray_m = reach_m()
-        if route_xy is not None:
-            route = route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
+        on_route, ray_m = route(), reach_m()
     evidence = diff_stage.removal_evidence(
         global_state,
         local_state,
@@ -485,11 +484,19 @@ def _diff_masks(
         depth_m=max(d.removed_depth_m, 2 * max(local.resolution, global_map.resolution)),
         see_through_m=d.see_through_m,
         both_sides_m=d.both_sides_m,
-        route=route,
+        route=on_route,
         depth_per_m=_DEPTH_PER_M,
         ray_m=ray_m,
     )
     return filtered, evidence
+
+
+def _route_on(grid: Grid, route_xy: np.ndarray | None) -> RouteDistance | None:
+    """How far the cells of ``grid`` lie from the route ``route_xy`` ((N, 2) nav2; None
+    without one): what the removal evidence of both comparisons measures from."""
+    if route_xy is None:
+        return None
+    return route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
 
 
 # The removal evidence's depth grows by this much per metre between a cell and the route
@@ -1160,11 +1167,11 @@ def _diff(
     roi_mask: np.ndarray,
     inputs: _Inputs,
     config: Config,
-    route_xy: np.ndarray | None,
+    route: Callable[[], RouteDistance | None],
 ) -> tuple[diff_stage.DiffMasks, np.ndarray]:
     """The filtered added/removed masks of the aligned local map against the global map and the
-    removal evidence, on ``aligned.view.grid`` (``route_xy``: the route there, nav2): all empty
-    when nothing is compared."""
+    removal evidence, on ``aligned.view.grid`` (``route()``: the route's distance there,
+    :func:`_route_on`): all empty when nothing is compared."""
     view = aligned.view
     if not aligned.compared:
         empty = np.zeros(view.grid.shape, bool)
@@ -1178,7 +1185,7 @@ def _diff(
         config,
         inputs.local,
         inputs.global_map,
-        route_xy,
+        route,
         lambda: inputs.reach_m,
     )
 
@@ -1228,14 +1235,14 @@ class _Found:
     """What the comparison found, on the aligned view's grid (nav2 frame): ``region`` the ROI,
     ``masks`` the filtered added/removed cells, ``differences`` the ones reported (largest
     first). ``refit``: the session drifted, so specks were dropped and the differences checked
-    by a local re-fit (``_REFIT_DRIFT_M``). ``route_xy``: the route (N, 2) the removal
-    evidence measured its distance from, None without one."""
+    by a local re-fit (``_REFIT_DRIFT_M``). ``route()``: the route's distance on that grid the
+    removal evidence measured from (:func:`_route_on`, worked out on first use)."""
 
     region: roi.Roi
     masks: diff_stage.DiffMasks
     differences: list[cluster_stage.Difference]
     refit: bool
-    route_xy: np.ndarray | None
+    route: Callable[[], RouteDistance | None]
 
 
 def _render(
@@ -1329,7 +1336,7 @@ def _judged_on_current(
         config,
         local,
         inputs.global_map,
-        found.route_xy,
+        found.route,
         lambda: inputs.reach_m,
     )
     judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
@@ -1497,8 +1504,10 @@ def process_bundle(
         "roi",
         partial(_make_roi, config, files, robot_from, route_xy, local_state, grid, warnings),
     )
+    # Worked out once when either comparison has removed cells to judge.
+    route = cache(partial(_route_on, grid, route_xy))
     masks, evidence = stages.run(
-        "diff", partial(_diff, aligned, region.mask, inputs, config, route_xy)
+        "diff", partial(_diff, aligned, region.mask, inputs, config, route)
     )
     # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are
     # not reported, and a difference that a small local re-fit of the walls around it
@@ -1514,7 +1523,7 @@ def process_bundle(
                 _refit, differences, aligned, masks.added, config, local, lambda: inputs.reach_m
             ),
         )
-    found = _Found(region, masks, differences, refit, route_xy)
+    found = _Found(region, masks, differences, refit, route)
 
     alignment_doc = _alignment_doc(alignment, aligned, local, settings.align.min_score)
     notice = trust_notice(alignment_doc)
