@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import RouteDistance, box_around, nonzero_cells
+from mapserver.grid import RouteDistance, box_around, grown, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -602,11 +602,10 @@ def _deep_inside(
     """On ``box`` of ``state``: whether each cell holds ``value`` and lies at least
     ``depth_px`` from any cell that does not (measured on the box grown by that depth, so that
     cells near the box's edge are not taken as deeper than they are)."""
-    pad = math.ceil(depth_px) + 1
-    rows, cols = box
-    r0, c0 = max(rows.start - pad, 0), max(cols.start - pad, 0)
-    window = (state[r0 : rows.stop + pad, c0 : cols.stop + pad] == value).view(np.uint8)
+    outer = grown(box, math.ceil(depth_px) + 1, state.shape)
+    window = (state[outer] == value).view(np.uint8)
     depth = cv2.distanceTransform(window, cv2.DIST_L2, 5)
+    (rows, cols), (r0, c0) = box, (outer[0].start, outer[1].start)
     inner = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
     return np.asarray((depth[inner] >= depth_px) & (window[inner] > 0))
 

@@ -204,6 +204,13 @@ def box_of_cells(
     return _grown(box, margin_px, shape)
 
 
+def grown(box: tuple[slice, slice], margin_px: int, shape: tuple[int, ...]) -> tuple[slice, slice]:
+    """``box`` ((rows, cols) slices) grown by ``margin_px`` on every side, clipped to an array
+    of ``shape``."""
+    rows, cols = box
+    return _grown((rows.start, rows.stop, cols.start, cols.stop), margin_px, shape)
+
+
 def _grown(
     box: tuple[int, int, int, int], margin_px: int, shape: tuple[int, ...]
 ) -> tuple[slice, slice]:
