@@ -327,6 +327,46 @@ def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() 
     assert _column_seen_through_a_band(in_pieces=True) == []
 
 
+def _wall_seen_free(*, folded: bool, behind: int = FREE) -> list[Difference]:
+    """The pipeline's re-fit of free cells in a wall 0.6 m thick (rows 30-41 at 0.05 m) across
+    a 4 m hall, with corridors seen free on both sides. ``folded``: the wall drawn as one line
+    on its south face (row 41) and its northern 0.3 m seen free over 3 m, the north pass's
+    floor laid inside it (a shallow fold: 0.3 m deep at most); ``behind``: the map's state
+    south of that line, the corridor. Else a real gap: 1 m of the wall gone through its whole
+    thickness, the wall either side drawn as its two faces."""
+    from mapserver.cluster import Difference
+
+    glob = np.full((80, 80), FREE, np.uint8)
+    glob[30:42] = OCCUPIED
+    local = np.full(glob.shape, FREE, np.uint8)
+    if folded:
+        local[41] = OCCUPIED
+        local[42:46] = behind
+        gone = np.zeros(glob.shape, bool)
+        gone[30:36, 10:70] = True
+    else:
+        local[30:42] = UNKNOWN
+        local[[30, 41]] = OCCUPIED
+        local[30:42, 30:50] = FREE
+        gone = np.zeros(glob.shape, bool)
+        gone[30:42, 30:50] = True
+    found = Difference(
+        "removed", (2.0, 2.0), (0.5, 1.9, 3.5, 2.2), 0.9, int(gone.sum()), cells(gone)
+    )
+    slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
+    return _refit(found, glob, local, RES, slam_map, None, in_pieces=False)
+
+
+def test_a_wall_drawn_on_one_face_with_its_other_part_seen_free_is_a_fold() -> None:
+    """Shallower than the depth floor (0.4 m), but the line's far side seen free all along it:
+    two faces drawn on one line. A real gap through the wall is kept: the wall's faces either
+    side of it go on along their lines, the wall behind the cells next to the gap."""
+    assert _wall_seen_free(folded=True) == []
+    assert len(_wall_seen_free(folded=False)) == 1
+    # The line's far side unseen: nothing says a second face was drawn on it.
+    assert len(_wall_seen_free(folded=True, behind=UNKNOWN)) == 1
+
+
 def _refit_in_pieces(
     kind: str,
     other_run_x: tuple[float, float],
