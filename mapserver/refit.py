@@ -14,8 +14,9 @@ whatever small move the surrounding walls allow; a removed wall stays free.
 
 :func:`floor_seen_share` checks the other trace a fold leaves: free cells inside a structure
 whose floor around it the robot never saw; :func:`faces_seen_from_behind` a third: free cells
-deep inside a solid structure, bounded by local walls that were seen free on their far side
-too (two faces of one solid wall drawn on one line).
+inside a structure, bounded by local walls that were seen free on their far side too (two
+faces of one solid wall drawn on one line; the pipeline asks most of them deep inside a solid,
+nearly all of them at any depth).
 """
 
 from __future__ import annotations
@@ -270,7 +271,9 @@ def faces_seen_from_behind(
     where the building has solid structure a metre thick, is two faces drawn on one line: slam
     laid the pass that saw the far face over the pass that saw the near one (drift), and the
     free cells inside the structure are that fold, not a removal. A real cut into a solid
-    structure ends on walls with the structure, never seen, behind them.
+    structure ends on walls with the structure, never seen, behind them. In a thinner one the
+    measure is weaker: a wall 0.15 m thick seen from both rooms is a line with floor on both
+    sides too, and so is what stays of it when an obstacle against it is removed.
     """
     rows, cols = cells[:, 0], cells[:, 1]
     reach = reach_m / resolution

@@ -12,6 +12,7 @@ import pytest
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import (
+    Faces,
     explained_by_refit,
     faces_seen_from_behind,
     floor_seen_share,
@@ -249,6 +250,8 @@ def test_a_thin_wall_removed_lies_no_depth_into_the_structure() -> None:
         _cells(slice(40, 43), slice(30, 50)), walls, local, resolution=0.05
     )
     assert faces.depth_m <= 0.1
+    # Nor are its walls seen from behind: the wall goes on along its line behind its ends.
+    assert faces.behind_share < 0.1
 
 
 def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
@@ -330,28 +333,34 @@ def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() 
 def _wall_seen_free(*, folded: bool, behind: int = FREE) -> list[Difference]:
     """The pipeline's re-fit of free cells in a wall 0.6 m thick (rows 30-41 at 0.05 m) across
     a 4 m hall, with corridors seen free on both sides. ``folded``: the wall drawn as one line
-    on its south face (row 41) and its northern 0.3 m seen free over 3 m, the north pass's
-    floor laid inside it (a shallow fold: 0.3 m deep at most); ``behind``: the map's state
-    south of that line, the corridor. Else a real gap: 1 m of the wall gone through its whole
-    thickness, the wall either side drawn as its two faces."""
+    on its south face (row 41), its inside unseen but for its northern 0.3 m seen free over 3 m
+    (the north pass's floor laid inside it: a shallow fold, 0.3 m deep at most); ``behind``: the
+    map's state south of that line, the corridor. Else a real gap: 1 m of the wall gone through
+    its whole thickness, the wall either side drawn as its two faces."""
     from mapserver.cluster import Difference
 
     glob = np.full((80, 80), FREE, np.uint8)
     glob[30:42] = OCCUPIED
     local = np.full(glob.shape, FREE, np.uint8)
+    local[30:42] = UNKNOWN
+    gone = np.zeros(glob.shape, bool)
     if folded:
         local[41] = OCCUPIED
         local[42:46] = behind
-        gone = np.zeros(glob.shape, bool)
         gone[30:36, 10:70] = True
     else:
-        local[30:42] = UNKNOWN
         local[[30, 41]] = OCCUPIED
-        local[30:42, 30:50] = FREE
-        gone = np.zeros(glob.shape, bool)
         gone[30:42, 30:50] = True
+    local[gone] = FREE
+    rows, cols = np.nonzero(gone)
+    xs, ys = (cols + 0.5) * RES, (80 - rows - 0.5) * RES
     found = Difference(
-        "removed", (2.0, 2.0), (0.5, 1.9, 3.5, 2.2), 0.9, int(gone.sum()), cells(gone)
+        "removed",
+        (float(xs.mean()), float(ys.mean())),
+        (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())),
+        len(rows) * RES**2,
+        len(rows),
+        cells(gone),
     )
     slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
     return _refit(found, glob, local, RES, slam_map, None, in_pieces=False)
@@ -359,12 +368,31 @@ def _wall_seen_free(*, folded: bool, behind: int = FREE) -> list[Difference]:
 
 def test_a_wall_drawn_on_one_face_with_its_other_part_seen_free_is_a_fold() -> None:
     """Shallower than the depth floor (0.4 m), but the line's far side seen free all along it:
-    two faces drawn on one line. A real gap through the wall is kept: the wall's faces either
+    two faces drawn on one line. This gap through the wall is kept: the wall's faces either
     side of it go on along their lines, the wall behind the cells next to the gap."""
     assert _wall_seen_free(folded=True) == []
     assert len(_wall_seen_free(folded=False)) == 1
     # The line's far side unseen: nothing says a second face was drawn on it.
     assert len(_wall_seen_free(folded=True, behind=UNKNOWN)) == 1
+
+
+@pytest.mark.parametrize(
+    ("walls", "seen_behind", "depth_m", "fold"),
+    [
+        (20, 18, 0.1, True),  # 1 m of wall, 90 % seen behind: at any depth
+        (20, 17, 0.1, False),  # 85 %, shallow
+        (19, 19, 0.1, False),  # 0.95 m of wall: too little to say
+        (20, 12, 0.4, True),  # 60 %, deep inside the structure
+        (20, 11, 0.4, False),
+        (19, 19, 0.5, False),
+    ],
+)
+def test_the_fold_asks_more_of_the_faces_the_shallower_it_lies(
+    walls: int, seen_behind: int, depth_m: float, fold: bool
+) -> None:
+    from mapserver import pipeline
+
+    assert pipeline._folded(Faces(walls, seen_behind, depth_m), 0.05) is fold
 
 
 def _refit_in_pieces(
