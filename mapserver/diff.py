@@ -564,9 +564,10 @@ def removal_evidence(
 # under depth_m (0.15 m) up to 12.7 m, so with a 12 m lidar nothing changes; a 20 m one asks
 # 0.24 m, a 30 m one 0.35 m. Session 14, with the pipeline's depth_per_m (0.0157): the 30 m
 # lidar's ordinary sessions (seed 1307) 26 -> 16 false removals, F1 0.884 -> 0.918, the 20 m
-# drift set (seed 1303) 11 -> 9, no change lost in either. The whole length (1.0) took 3 and 2 more false
-# removals off those two, but a 12 m set then asks 0.19 m and lost 2 of seed 99's 152 changes
-# (F1 0.960 -> 0.953); half (0.5) kept 1 and 2 of these false removals more than 0.75.
+# drift set (seed 1303) 11 -> 9, no change lost in either. The whole length (1.0) took 3 and
+# 2 more false removals off those two, but a 12 m set then asks 0.19 m and lost 2 of seed
+# 99's 152 changes (F1 0.960 -> 0.953); half (0.5) kept 1 and 2 of these false removals more
+# than 0.75.
 _SKIM_SHARE = 0.75
 
 

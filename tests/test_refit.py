@@ -337,7 +337,8 @@ def _wall_seen_free(*, folded: bool, behind: int = FREE) -> list[Difference]:
     (the north pass's floor laid inside it: a shallow fold, 0.3 m deep at most); ``behind``: the
     map's state south of that line, the corridor. Else a real gap: 1 m of the wall gone through
     its whole thickness, the wall either side drawn as its two faces."""
-    from mapserver.cluster import Difference
+    from mapserver.cluster import cluster_mask
+    from mapserver.grid import Grid
 
     glob = np.full((80, 80), FREE, np.uint8)
     glob[30:42] = OCCUPIED
@@ -352,16 +353,7 @@ def _wall_seen_free(*, folded: bool, behind: int = FREE) -> list[Difference]:
         local[[30, 41]] = OCCUPIED
         gone[30:42, 30:50] = True
     local[gone] = FREE
-    rows, cols = np.nonzero(gone)
-    xs, ys = (cols + 0.5) * RES, (80 - rows - 0.5) * RES
-    found = Difference(
-        "removed",
-        (float(xs.mean()), float(ys.mean())),
-        (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())),
-        len(rows) * RES**2,
-        len(rows),
-        cells(gone),
-    )
+    (found,) = cluster_mask(gone, Grid(0.0, 0.0, RES, 80, 80), "removed", eps_m=0.1, min_samples=1)
     slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
     return _refit(found, glob, local, RES, slam_map, None, in_pieces=False)
 
