@@ -3,31 +3,39 @@ census of a ``bench_public.py`` run (issue 12's instrument).
 
 Every bundle of SET whose result in OUTBOX misses a change or reports a false positive (every
 bundle, with ``--all``) is processed again with observers on the pipeline's stages. For each
-missed change it prints the cells of its polygon (grown by two cells) that the difference mask
-of its kind holds, the removal evidence among them, the clusters made there (``clusters``:
-before the area and evidence filters; ``kept``: after) and, for the kept ones, what each of the
-re-fit's checks decided. Each miss gets the stage that lost it:
+missed change it prints what each stage held of it: the cells of its polygon (grown by two
+cells) in the raw difference mask of its kind and in the filtered one, the removal evidence
+among them, the clusters made there (``clusters``: before the area and evidence filters;
+``kept``: after) and, for the kept ones, what each of the re-fit's checks measured. Each miss
+gets the stage that lost it:
 
-* ``not compared``: the bundle was not compared (untrusted, failed);
-* ``no mask``: no cell of the change in the difference mask (unseen, or within a tolerance);
-* ``filtered``: in the mask, but every cluster there too small or without evidence;
-* ``judged``: a kept cluster that a re-fit check explained away (``floor``, ``faces``,
-  ``refit``, ``pass``, ``ghost``: see ``pipeline._refit``);
-* ``reported``: a difference was reported there, yet it does not match the change (its box
-  too large, its kind wrong...).
+* ``not compared``: the bundle failed, or its alignment was not trusted;
+* ``no difference``: no cell of it in the raw difference mask (not seen in the aligned local
+  map, or within a tolerance of the global map);
+* ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
+* ``clusters``: in the mask, but every cluster there too small or without removal evidence;
+* ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
+  ``pipeline._refit`` asks them (``floor``, ``faces``, ``refit``, ``pass``, ``ghost``);
+* ``reported``: a cluster there survived, yet no difference matches the change (too large a
+  box, the wrong kind...).
 
 For each false positive it prints the checks it passed. With ``--all``, every difference the
-re-fit judged is listed with its label (contract section 4: ``correct``, ``neutral``,
-``false_positive``) and the check that decided it, and a table counts them by check and label:
-the census behind the thresholds in ``pipeline.py``.
+re-fit judged is listed with its label (``score_bundle`` on it as if reported: ``correct``,
+``neutral``, ``false_positive``) and the check that decided it (the first to explain it, or
+``reported``), and a table counts them by that check and label: the census behind the
+thresholds in ``pipeline.py``. With a map store in the configuration, the fleet's own
+comparison against the stored map's current version is not recorded.
 
-Usage::
+Usage (the same ``--config`` as the run, if it had one)::
 
     .venv/bin/python benchmarks/bench_public.py SET --out /tmp/run
     .venv/bin/python benchmarks/census.py SET /tmp/run [BUNDLE_SUBSTRING ...] [--all]
 
-The observers wrap module-level functions of the pipeline (``OBSERVED``); a test runs this
-script on a bundle, so a stage renamed in the pipeline breaks that test, not a census.
+The observers wrap module-level functions of the pipeline (``OBSERVED``); its tests run this
+script on bundles, and check that the checks' verdicts as recorded here drop exactly what the
+re-fit drops, so a stage renamed or a rule changed in the pipeline breaks a test, not a census.
+A re-run that does not report what the outbox holds (another configuration, another commit)
+is said so (``MISMATCH``).
 """
 
 from __future__ import annotations
@@ -49,9 +57,11 @@ from bench_public import Case, find_cases  # benchmarks/ is on sys.path when a s
 from numpy.typing import NDArray
 
 from mapserver import cluster as cluster_stage
-from mapserver import pipeline
+from mapserver import diff as diff_stage
+from mapserver import pipeline, roi
 from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
+from mapserver.errors import MapserverError
 from mapserver.grid import Grid
 from mapserver.scoring import (
     Change,
@@ -64,7 +74,7 @@ from mapserver.scoring import (
 )
 
 # The re-fit's checks (pipeline._refit, in its order): the function, and whether its value
-# explains a difference away.
+# explains a difference away (its keyword arguments at hand).
 _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]] = {
     "floor": (
         refit_stage,
@@ -80,37 +90,46 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
 }
+CHECKS = tuple(_CHECKS)
 # Every function observed: (module, name).
 OBSERVED = (
     (pipeline, "_diff"),
+    (diff_stage, "raw_differences"),
     (cluster_stage, "cluster_mask"),
+    (pipeline, "_judged_on_current"),
     *((module, name) for module, name, _ in _CHECKS.values()),
 )
-CHECKS = tuple(_CHECKS)
-# A change's polygon is grown by this many cells to count the mask under it (the masks of a
+STAGES = ("not compared", "no difference", "diff filters", "clusters", "judged", "reported")
+# A change's polygon is grown by this many cells to count the masks under it (the masks of a
 # drifted map lie a cell or two off the truth).
 GROW_PX = 2
 
 
 @dataclass(frozen=True)
 class Verdict:
-    """What one re-fit check made of a difference: ``explained`` (the check drops it)."""
+    """What one re-fit check made of a difference: ``explained`` (the check drops it), and
+    what it measured, as text."""
 
     check: str
     explained: bool
-    value: str
+    shown: str
 
 
 @dataclass
 class Trace:
-    """What one run of the pipeline on a bundle showed (the last comparison it made)."""
+    """What one run of the pipeline on a bundle showed: its comparison against the bundle's
+    own global map (``compared``: False when its alignment was not trusted)."""
 
+    compared: bool = False
     grid: Grid | None = None
-    masks: Any = None
+    raw: diff_stage.DiffMasks | None = None
+    masks: diff_stage.DiffMasks | None = None
     evidence: NDArray[np.bool_] | None = None
     clusters: list[cluster_stage.Difference] = field(default_factory=list)
     kept: list[cluster_stage.Difference] = field(default_factory=list)
     verdicts: dict[bytes, list[Verdict]] = field(default_factory=dict)
+    # While the fleet's comparison against the stored map's current version runs.
+    paused: bool = False
 
     def of(self, difference: cluster_stage.Difference) -> list[Verdict]:
         return self.verdicts.get(_key(difference.cells), []) if difference.cells is not None else []
@@ -122,26 +141,41 @@ def _key(cells: NDArray[np.intp]) -> bytes:
 
 @contextmanager
 def observing(trace: Trace) -> Iterator[Trace]:
-    """The pipeline's stages wrapped so that ``trace`` collects what they made; undone on
-    exit."""
+    """The pipeline's stages wrapped so that ``trace`` collects what they made; undone on exit,
+    whatever happens."""
     originals = {(module, name): getattr(module, name) for module, name in OBSERVED}
-    diff = originals[(pipeline, "_diff")]
-    cluster_mask = originals[(cluster_stage, "cluster_mask")]
 
     def observed_diff(aligned: Any, *args: Any, **kwargs: Any) -> Any:
-        masks, evidence = diff(aligned, *args, **kwargs)
+        trace.raw = None
+        masks, evidence = originals[(pipeline, "_diff")](aligned, *args, **kwargs)
+        trace.compared = bool(aligned.compared)
         trace.grid, trace.masks, trace.evidence = aligned.view.grid, masks, evidence
         trace.clusters.clear()
         trace.kept.clear()
         trace.verdicts.clear()
         return masks, evidence
 
+    def observed_raw(*args: Any, **kwargs: Any) -> Any:
+        raw = originals[(diff_stage, "raw_differences")](*args, **kwargs)
+        if not trace.paused:
+            trace.raw = raw
+        return raw
+
     def observed_cluster_mask(mask: Any, grid: Grid, kind: str, **kwargs: Any) -> Any:
+        cluster_mask = originals[(cluster_stage, "cluster_mask")]
         kept = cluster_mask(mask, grid, kind, **kwargs)
-        unfiltered = {**kwargs, "min_area_m2": 0.0, "evidence": None}
-        trace.clusters.extend(cluster_mask(mask, grid, kind, **unfiltered))
-        trace.kept.extend(kept)
+        if not trace.paused:
+            unfiltered = {**kwargs, "min_area_m2": 0.0, "evidence": None}
+            trace.clusters.extend(cluster_mask(mask, grid, kind, **unfiltered))
+            trace.kept.extend(kept)
         return kept
+
+    def observed_current(*args: Any, **kwargs: Any) -> Any:
+        trace.paused = True
+        try:
+            return originals[(pipeline, "_judged_on_current")](*args, **kwargs)
+        finally:
+            trace.paused = False
 
     def check(
         name: str, function: Callable[..., Any], verdict: Callable[[Any, dict[str, Any]], bool]
@@ -151,17 +185,20 @@ def observing(trace: Trace) -> Iterator[Trace]:
 
         def observed(first: Any, *args: Any, **kwargs: Any) -> Any:
             value = function(first, *args, **kwargs)
-            cells = first if isinstance(first, np.ndarray) else first.cells
-            trace.verdicts.setdefault(_key(cells), []).append(
-                Verdict(name, verdict(value, kwargs), _shown(value))
-            )
+            if not trace.paused:
+                cells = first if isinstance(first, np.ndarray) else first.cells
+                trace.verdicts.setdefault(_key(cells), []).append(
+                    Verdict(name, verdict(value, kwargs), _shown(value))
+                )
             return value
 
         return observed
 
     wrapped = {
         (pipeline, "_diff"): observed_diff,
+        (diff_stage, "raw_differences"): observed_raw,
         (cluster_stage, "cluster_mask"): observed_cluster_mask,
+        (pipeline, "_judged_on_current"): observed_current,
         **{
             (module, attr): check(name, originals[(module, attr)], verdict)
             for name, (module, attr, verdict) in _CHECKS.items()
@@ -186,12 +223,11 @@ def _shown(value: Any) -> str:
 
 def polygon_cells(grid: Grid, change: Change, grow_px: int) -> NDArray[np.bool_]:
     """(H, W) bool: the cells of ``grid`` inside the change's polygon, grown by ``grow_px``."""
-    mask = np.zeros(grid.shape, np.uint8)
-    corners = np.rint(grid.to_pixel(change.polygon_xy)).astype(np.int32)
-    cv2.fillPoly(mask, [corners], 1)
-    if grow_px:
-        mask = cv2.dilate(mask, np.ones((2 * grow_px + 1,) * 2, np.uint8))
-    return mask.astype(bool)
+    inside = roi._fill(grid, change.polygon_xy)  # the polygon as the ROI fills its own
+    if not grow_px:
+        return inside
+    grown = cv2.dilate(inside.view(np.uint8), np.ones((2 * grow_px + 1,) * 2, np.uint8))
+    return np.asarray(grown.view(bool))
 
 
 def _inside(
@@ -208,132 +244,164 @@ def _inside(
     return out
 
 
-def _decided(verdicts: list[Verdict]) -> str:
-    """The check that explained a difference away, else ``reported``."""
+def decided(verdicts: list[Verdict]) -> str:
+    """The check that explained a difference away (the first: ``pipeline._refit`` asks no
+    more), else ``reported``."""
     return next((v.check for v in verdicts if v.explained), "reported")
 
 
 def _as_scored(d: cluster_stage.Difference, index: int) -> Difference:
     """A difference as scoring reads it (as if reported)."""
-    min_x, min_y, max_x, max_y = d.bbox
-    return Difference(index, d.kind, (d.centroid[0], d.centroid[1]), (min_x, min_y, max_x, max_y))
+    return Difference(index, d.kind, d.centroid, d.bbox)
 
 
-def miss_line(change: Change, trace: Trace, reported: bool) -> tuple[str, str]:
-    """The stage that lost ``change`` and a line that says what each stage held of it."""
+def _verdicts_text(verdicts: list[Verdict]) -> str:
+    return ", ".join(f"{v.check} {v.shown}{' EXPLAINED' if v.explained else ''}" for v in verdicts)
+
+
+def miss_line(change: Change, trace: Trace | None) -> tuple[str, str]:
+    """The stage that lost ``change`` (one of ``STAGES``) and a line that says what each stage
+    held of it (``trace`` None: the bundle failed)."""
     p = change.polygon_xy
     head = (
         f"MISS {change.id} {change.kind} at ({p[:, 0].mean():.2f},{p[:, 1].mean():.2f}) "
         f"{np.ptp(p[:, 0]):.2f}x{np.ptp(p[:, 1]):.2f} m"
     )
-    if trace.grid is None or trace.masks is None:
-        return "not compared", f"{head}: not compared"
+    if trace is None or not trace.compared or trace.grid is None or trace.masks is None:
+        return "not compared", f"{head} -> not compared"
     grown = polygon_cells(trace.grid, change, GROW_PX)
+    raw = getattr(trace.raw, change.kind) & grown if trace.raw is not None else np.zeros_like(grown)
     mask = getattr(trace.masks, change.kind) & grown
-    line = f"{head}: polygon {int(polygon_cells(trace.grid, change, 0).sum())} cells, mask "
-    line += f"{int(mask.sum())}"
+    line = f"{head}: polygon {int(polygon_cells(trace.grid, change, 0).sum())} cells, raw "
+    line += f"{int(raw.sum())}, mask {int(mask.sum())}"
     if change.kind == "removed" and trace.evidence is not None:
         line += f", evidence {int((trace.evidence & mask).sum())}"
     clusters = _inside(trace.clusters, change.kind, grown)
     kept = _inside(trace.kept, change.kind, grown)
     line += "; clusters " + (", ".join(f"{n}/{d.pixels} px" for d, n in clusters) or "none")
     kept_text = ", ".join(
-        f"{n}/{d.pixels} px ({', '.join(_verdict_text(v) for v in trace.of(d)) or 'no check'})"
-        for d, n in kept
+        f"{n}/{d.pixels} px ({_verdicts_text(trace.of(d)) or 'no check'})" for d, n in kept
     )
     line += f"; kept {kept_text or 'none'}"
-    if not mask.any():
-        stage = "no mask"
+    if not raw.any():
+        stage = "no difference"
+    elif not mask.any():
+        stage = "diff filters"
     elif not kept:
-        stage = "filtered"
-    elif reported or any(_decided(trace.of(d)) == "reported" for d, _ in kept):
+        stage = "clusters"
+    elif any(decided(trace.of(d)) == "reported" for d, _ in kept):
         stage = "reported"
     else:
         stage = "judged"
     return stage, f"{line} -> {stage}"
 
 
-def _verdict_text(v: Verdict) -> str:
-    return f"{v.check} {v.value}{' EXPLAINED' if v.explained else ''}"
-
-
 @dataclass
 class Census:
-    """Counts over a set: misses by the stage that lost them; judged differences by check and
-    label."""
+    """Counts over a set: misses by (kind, the stage that lost them); judged differences by
+    (kind, the check that decided, label)."""
 
     misses: Counter[tuple[str, str]] = field(default_factory=Counter)
     judged: Counter[tuple[str, str, str]] = field(default_factory=Counter)
 
 
 def census_of_bundle(
-    case: Case, truth: Truth, result: Result, config: Config, census: Census, *, every: bool
+    case: Case, truth: Truth, result: Result | None, config: Config, census: Census, *, every: bool
 ) -> list[str]:
-    """Re-run one bundle with observers; its lines, and its counts added to ``census``."""
+    """Re-run one bundle with observers (``result``: its result in the outbox, None when it
+    has none); its lines, and its counts added to ``census``."""
     score = score_bundle(truth, result)
     false_positives = [s for s in score.differences if s.label == "false_positive"]
     if not every and not score.unmatched_change_ids and not false_positives:
         return []
-    trace = Trace()
-    with observing(trace):
-        outcome = pipeline.process_bundle(case.bundle_dir, config)
-    alignment = outcome.result.get("alignment") or {}
-    lines = [
-        f"== {case.bundle_id}: pieces {alignment.get('pieces')}, trusted share "
-        f"{alignment.get('trusted_share')}, drift {alignment.get('drift_m')} m"
-    ]
+    observed = Trace()
+    failed = ""
+    with observing(observed):
+        try:
+            outcome = pipeline.process_bundle(case.bundle_dir, config, bundle_id=case.bundle_id)
+        except MapserverError as error:
+            failed = f"{error.stage}: {error.reason}"
+    trace = None if failed else observed  # a bundle that failed compared nothing
+    if trace is None:
+        lines = [f"== {case.bundle_id}: failed ({failed})"]
+    else:
+        alignment = outcome.result.get("alignment") or {}
+        lines = [
+            f"== {case.bundle_id}: trusted {alignment.get('trusted')}, pieces "
+            f"{alignment.get('pieces')}, trusted share {alignment.get('trusted_share')}, drift "
+            f"{alignment.get('drift_m')} m"
+        ]
+        lines += _mismatch(outcome.result, result)
     changes = {c.id: c for c in truth.changes}
     for change_id in score.unmatched_change_ids:
         change = changes[change_id]
-        reported = any(
-            d.kind == change.kind and _near(d.centroid_xy, change) for d in result.differences
-        )
-        stage, line = miss_line(change, trace, reported)
+        stage, line = miss_line(change, trace)
         census.misses[(change.kind, stage)] += 1
         lines.append("  " + line)
-    reported_by_id = {d.id: d for d in result.differences}
+    reported = {d.id: d for d in result.differences} if result is not None else {}
     for fp in false_positives:
-        d = reported_by_id[fp.difference_id]
-        same = [k for k in trace.kept if np.allclose(k.centroid, d.centroid_xy, atol=0.01)]
-        checks = "; ".join(", ".join(_verdict_text(v) for v in trace.of(k)) for k in same)
+        d = reported[fp.difference_id]
+        same = (
+            []
+            if trace is None
+            else [k for k in trace.kept if np.allclose(k.centroid, d.centroid_xy, atol=0.01)]
+        )
+        if not same:
+            checks = "not found in the re-run"
+        else:
+            checks = "; ".join(_verdicts_text(trace.of(k)) for k in same if trace is not None)
         lines.append(
             f"  FP #{d.id} {d.kind} at ({d.centroid_xy[0]:.2f},{d.centroid_xy[1]:.2f}): "
-            f"checks {checks or 'none ran'}"
+            f"{checks or 'no re-fit (the map did not drift)'}"
         )
-    if every:
+    if every and trace is not None:
         judged = [k for k in trace.kept if trace.of(k)]
         labels = score_bundle(
-            truth,
-            Result("ok", tuple(_as_scored(k, i) for i, k in enumerate(judged))),
+            truth, Result("ok", tuple(_as_scored(k, i) for i, k in enumerate(judged)))
         ).differences
         for k, s in zip(judged, labels, strict=True):
-            decided = _decided(trace.of(k))
-            census.judged[(k.kind, decided, s.label)] += 1
+            check = decided(trace.of(k))
+            census.judged[(k.kind, check, s.label)] += 1
             lines.append(
                 f"  JUDGED {s.label} {k.kind} at ({k.centroid[0]:.2f},{k.centroid[1]:.2f}) "
-                f"{k.pixels} px -> {decided}: " + ", ".join(_verdict_text(v) for v in trace.of(k))
+                f"{k.pixels} px -> {check}: {_verdicts_text(trace.of(k))}"
             )
     return lines
 
 
-def _near(xy: tuple[float, float], change: Change, margin_m: float = 0.5) -> bool:
-    lo, hi = change.polygon_xy.min(axis=0) - margin_m, change.polygon_xy.max(axis=0) + margin_m
-    return bool(lo[0] <= xy[0] <= hi[0] and lo[1] <= xy[1] <= hi[1])
+def _mismatch(rerun: dict[str, Any], result: Result | None) -> list[str]:
+    """A line when the re-run does not report what the outbox holds (centroids to 1 mm)."""
+    again = sorted(
+        (d["kind"], round(d["centroid"]["x"], 3), round(d["centroid"]["y"], 3))
+        for d in rerun.get("differences") or []
+    )
+    held = sorted(
+        (d.kind, round(d.centroid_xy[0], 3), round(d.centroid_xy[1], 3))
+        for d in (result.differences if result is not None else ())
+    )
+    if again == held:
+        return []
+    return [
+        f"  MISMATCH: the re-run reports {len(again)} differences, the outbox {len(held)} "
+        "(another configuration or commit?): the stages below are the re-run's"
+    ]
 
 
 def summary_lines(census: Census) -> list[str]:
     lines = ["== misses by the stage that lost them"]
-    for (kind, stage), n in sorted(census.misses.items()):
-        lines.append(f"  {kind:8s} {stage:13s} {n:5d}")
+    for kind in ("added", "removed"):
+        for stage in STAGES:
+            if census.misses[(kind, stage)]:
+                lines.append(f"  {kind:8s} {stage:13s} {census.misses[(kind, stage)]:5d}")
     if census.judged:
         labels = ("correct", "neutral", "false_positive")
         lines.append("== differences the re-fit judged, by the check that decided (--all)")
         lines.append(f"  {'kind':8s} {'decided':9s} " + " ".join(f"{x:>14s}" for x in labels))
         for kind in ("added", "removed"):
-            for decided in (*CHECKS, "reported"):
-                row = [census.judged[(kind, decided, label)] for label in labels]
+            for check in (*CHECKS, "reported"):
+                row = [census.judged[(kind, check, label)] for label in labels]
                 if any(row):
-                    lines.append(f"  {kind:8s} {decided:9s} " + " ".join(f"{n:14d}" for n in row))
+                    lines.append(f"  {kind:8s} {check:9s} " + " ".join(f"{n:14d}" for n in row))
     return lines
 
 
@@ -350,12 +418,11 @@ def main(argv: list[str] | None = None) -> int:
     for case in find_cases(args.set_dir):
         if args.bundles and not any(b in case.bundle_id for b in args.bundles):
             continue
-        result_path = args.outbox / case.bundle_id / "result.yaml"
-        if not result_path.is_file():
-            print(f"== {case.bundle_id}: no result in {args.outbox}")
-            continue
         truth = parse_truth(yaml.safe_load(case.truth_path.read_text(encoding="utf-8")))
-        result = parse_result(yaml.safe_load(result_path.read_text(encoding="utf-8")))
+        result_path = args.outbox / case.bundle_id / "result.yaml"
+        result = None
+        if result_path.is_file():  # none: the bundle failed (bench_public writes no result)
+            result = parse_result(yaml.safe_load(result_path.read_text(encoding="utf-8")))
         for line in census_of_bundle(case, truth, result, config, census, every=args.all):
             print(line, flush=True)
     print("\n".join(summary_lines(census)))

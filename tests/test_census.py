@@ -1,22 +1,31 @@
-"""benchmarks/census.py: where the pipeline lost each missed change, what let each false
-positive through, on a generated bundle whose truth the test edits (a change planted where
-nothing changed, a real one taken out)."""
+"""benchmarks/census.py: where the pipeline lost each missed change and what let each false
+positive through, on generated bundles whose truth the tests edit (a change planted where
+nothing changed, a real one taken out), and its verdicts against what the re-fit drops."""
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
 from bench_support import benchmark_module
 
+from mapserver import cluster as cluster_stage
 from mapserver import pipeline, synth
 from mapserver import refit as refit_stage
+from mapserver.cluster import Difference
 from mapserver.config import load_config
+from mapserver.diff import DiffMasks
+from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
+from mapserver.scoring import Change, parse_result, parse_truth
+
+STAMP = "2026-11-27T10:00:00Z"
 
 
 @pytest.fixture(scope="module")
@@ -25,96 +34,281 @@ def census() -> Iterator[ModuleType]:
         yield module
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
-    """A one-bundle set, the pipeline's result for it in an outbox, and its truth document."""
-    root = tmp_path_factory.mktemp("census")
-    office = synth.make_office_map(width_m=26, height_m=18, rng=11)
-    scenario = synth.make_scenario(
-        office, seed=5, route_length_m=20, n_added=3, n_removed=2, n_people=0
-    )
+def _one_bundle_set(root: Path, scenario: synth.SyntheticBundle) -> tuple[Path, Path]:
+    """A set of one bundle (``s1/bundles/b1`` and its truth) and an outbox holding the
+    pipeline's result for it, as ``bench_public.py --out`` leaves it."""
     set_dir = root / "set"
     truth_path = set_dir / "s1" / "truth" / "b1.yaml"
     truth_path.parent.mkdir(parents=True)
     bundle = synth.write_scenario(
-        scenario,
-        set_dir / "s1" / "bundles",
-        "b1",
-        truth_path=truth_path,
-        stamp="2026-11-27T10:00:00Z",
+        scenario, set_dir / "s1" / "bundles", "b1", truth_path=truth_path, stamp=STAMP
     )
     outcome = pipeline.process_bundle(bundle, load_config(None))
     outbox = root / "outbox"
     (outbox / "b1").mkdir(parents=True)
     (outbox / "b1" / "result.yaml").write_text(yaml.safe_dump(outcome.result))
-    return set_dir, outbox, yaml.safe_load(truth_path.read_text())
+    return set_dir, outbox
 
 
-def test_a_change_nothing_shows_is_lost_at_the_mask_and_an_unlisted_one_is_a_false_positive(
-    census: ModuleType, run: tuple[Path, Path, dict], capsys: pytest.CaptureFixture[str]
-) -> None:
-    set_dir, outbox, truth = run
-    result = yaml.safe_load((outbox / "b1" / "result.yaml").read_text())
-    found = [d for d in result["differences"] if d["kind"] == "added"]
-    assert found, "the session reports its planted obstacles"
-    # The truth edited: the first added change taken out (what was reported there is now a
-    # false positive), and an obstacle planted on the robot's own route (free floor in both
-    # maps: nothing in the difference mask there).
-    first = min(
-        (c for c in truth["changes"] if c["kind"] == "added"),
-        key=lambda c: np.hypot(
-            *(
-                np.mean(c["polygon"], axis=0)
-                - [found[0]["centroid"]["x"], found[0]["centroid"]["y"]]
-            )
-        ),
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 20 m office session without drift (the re-fit does not run)."""
+    office = synth.make_office_map(width_m=26, height_m=18, rng=11)
+    scenario = synth.make_scenario(
+        office, seed=5, route_length_m=20, n_added=3, n_removed=2, n_people=0
     )
-    manifest = yaml.safe_load((set_dir / "s1" / "bundles" / "b1" / "bundle.yaml").read_text())
-    x, y = manifest["pose"]["nav2"]["x"], manifest["pose"]["nav2"]["y"]
+    return _one_bundle_set(tmp_path_factory.mktemp("clean"), scenario)
+
+
+@pytest.fixture
+def edited(clean: tuple[Path, Path], tmp_path: Path) -> tuple[Path, Path, dict[str, Any], int]:
+    """A copy of the clean set whose truth has the change nearest the first reported added
+    difference taken out (that difference is now a false positive, its id returned) and an
+    obstacle planted on the robot's own route (change 99: free floor in both maps)."""
+    set_dir, outbox = clean
+    copy = tmp_path / "set"
+    shutil.copytree(set_dir, copy)
+    truth_path = copy / "s1" / "truth" / "b1.yaml"
+    truth = yaml.safe_load(truth_path.read_text())
+    result = yaml.safe_load((outbox / "b1" / "result.yaml").read_text())
+    first = next(d for d in result["differences"] if d["kind"] == "added")
+    at = np.array([first["centroid"]["x"], first["centroid"]["y"]])
+    taken = min(
+        (c for c in truth["changes"] if c["kind"] == "added"),
+        key=lambda c: np.hypot(*(np.mean(c["polygon"], axis=0) - at)),
+    )
+    pose = yaml.safe_load((copy / "s1" / "bundles" / "b1" / "bundle.yaml").read_text())["pose"]
+    x, y = pose["nav2"]["x"], pose["nav2"]["y"]
     planted = {
         "id": 99,
         "kind": "added",
         "polygon": [[x - 0.2, y - 0.2], [x + 0.2, y - 0.2], [x + 0.2, y + 0.2], [x - 0.2, y + 0.2]],
         "observed": True,
     }
-    edited = {**truth, "changes": [c for c in truth["changes"] if c is not first] + [planted]}
-    (set_dir / "s1" / "truth" / "b1.yaml").write_text(yaml.safe_dump(edited))
+    truth["changes"] = [c for c in truth["changes"] if c is not taken] + [planted]
+    truth_path.write_text(yaml.safe_dump(truth))
+    return copy, outbox, truth, int(first["id"])
+
+
+def _run(census: ModuleType, set_dir: Path, outbox: Path, every: bool) -> tuple[Any, list[str]]:
+    """The census of bundle b1: its counts and lines."""
+    case = census.find_cases(set_dir)[0]
+    truth = parse_truth(yaml.safe_load(case.truth_path.read_text()))
+    result_path = outbox / "b1" / "result.yaml"
+    result = parse_result(yaml.safe_load(result_path.read_text())) if result_path.exists() else None
+    counts = census.Census()
+    lines = census.census_of_bundle(case, truth, result, load_config(None), counts, every=every)
+    return counts, lines
+
+
+def test_a_change_nothing_shows_is_lost_before_any_difference_and_an_unlisted_one_is_a_false_positive(
+    census: ModuleType, edited: tuple[Path, Path, dict[str, Any], int]
+) -> None:
+    set_dir, outbox, _, fp_id = edited
+    counts, lines = _run(census, set_dir, outbox, every=True)
+
+    miss = next(line for line in lines if "MISS 99 added" in line)
+    assert "raw 0, mask 0;" in miss and miss.endswith("-> no difference")
+    assert counts.misses[("added", "no difference")] == 1
+    fp = next(line for line in lines if line.startswith(f"  FP #{fp_id} added"))
+    # The map did not drift: no re-fit check ran on it (the same difference in the re-run).
+    assert fp.endswith("no re-fit (the map did not drift)")
+    assert not any("MISMATCH" in line for line in lines)
+    assert not counts.judged  # nothing judged without a re-fit
+
+
+def test_the_command_prints_the_misses_and_the_summary_and_leaves_the_pipeline_as_it_was(
+    census: ModuleType,
+    edited: tuple[Path, Path, dict[str, Any], int],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    set_dir, outbox, _, fp_id = edited
     originals = {(m, n): getattr(m, n) for m, n in census.OBSERVED}
-
-    assert census.main([str(set_dir), str(outbox), "--all"]) == 0
-
+    assert census.main([str(set_dir), str(outbox)]) == 0
     out = capsys.readouterr().out
-    miss = next(line for line in out.splitlines() if "MISS 99 added" in line)
-    assert "mask 0;" in miss and miss.endswith("-> no mask")
-    assert f"FP #{found[0]['id']} added" in out
-    summary = out[out.index("== misses by the stage") :].splitlines()
-    assert summary[1:] == ["  added    no mask           1"]
-    # The pipeline is left as it was.
+    assert "-> no difference" in out and f"FP #{fp_id} added" in out
+    summary = out[out.index("== misses by the stage that lost them") :].splitlines()[1:]
+    assert any(line.split() == ["added", "no", "difference", "1"] for line in summary)
     assert all(getattr(m, n) is f for (m, n), f in originals.items())
 
 
-def test_the_observers_record_each_checks_verdict_on_the_cells_it_judged(
+def test_a_bundle_that_fails_loses_its_changes_before_the_comparison(
+    census: ModuleType, clean: tuple[Path, Path], tmp_path: Path
+) -> None:
+    set_dir, _ = clean
+    copy = tmp_path / "set"
+    shutil.copytree(set_dir, copy)
+    (copy / "s1" / "bundles" / "b1" / "slam_map.pgm").write_bytes(b"P5\n")  # damaged
+    empty = tmp_path / "outbox"  # bench_public writes no result for a failed bundle
+    empty.mkdir()
+    truth = parse_truth(yaml.safe_load((copy / "s1" / "truth" / "b1.yaml").read_text()))
+    observed = [c for c in truth.changes if c.structural and c.observed]
+
+    counts, lines = _run(census, copy, empty, every=False)
+
+    assert lines[0].startswith("== b1: failed (")
+    assert sum(counts.misses.values()) == len(observed) > 0
+    assert set(stage for _, stage in counts.misses) == {"not compared"}
+
+
+def test_an_untrusted_alignment_loses_its_changes_before_the_comparison(
+    census: ModuleType, edited: tuple[Path, Path, dict[str, Any], int], tmp_path: Path
+) -> None:
+    # No alignment reaches a score of 1: nothing is compared, every miss is lost there, and
+    # the re-run no longer reports what the outbox holds.
+    set_dir, outbox, _, _ = edited
+    config = tmp_path / "untrusting.yaml"
+    config.write_text(yaml.safe_dump({"pipeline": {"align": {"min_score": 1.0}}}))
+    counts = census.Census()
+    case = census.find_cases(set_dir)[0]
+    truth = parse_truth(yaml.safe_load(case.truth_path.read_text()))
+    result = parse_result(yaml.safe_load((outbox / "b1" / "result.yaml").read_text()))
+    lines = census.census_of_bundle(case, truth, result, load_config(config), counts, every=False)
+    assert lines[0].startswith("== b1: trusted False")
+    assert any(line.startswith("  MISMATCH: the re-run reports 0 differences") for line in lines)
+    assert counts.misses[("added", "not compared")] >= 1
+    assert set(stage for _, stage in counts.misses) == {"not compared"}
+
+
+@pytest.mark.parametrize(
+    ("seed", "checks"), [(3, {"floor", "refit", "pass"}), (6, {"faces", "pass", "ghost"})]
+)
+def test_the_verdicts_recorded_drop_exactly_what_the_refit_drops(
+    census: ModuleType,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    seed: int,
+    checks: set[str],
+) -> None:
+    # A 70 m session drifting 0.1 degrees per metre one way: aligned in pieces and re-fitted,
+    # the re-fit's checks deciding (between the two seeds, each check at least once).
+    office = synth.make_office_map(width_m=30, height_m=20, rng=11)
+    scenario = synth.make_scenario(
+        office,
+        seed=seed,
+        route_length_m=70,
+        n_added=4,
+        n_removed=3,
+        n_people=0,
+        drift_yaw_deg_per_m=0.1,
+        drift_scale=0.005,
+    )
+    bundle = synth.write_scenario(scenario, tmp_path, "b1", stamp=STAMP)
+    judged: list[Any] = []
+    kept_by_refit: list[Any] = []
+    refit = pipeline._refit
+
+    def recording_refit(differences: list[Any], *args: Any, **kwargs: Any) -> Any:
+        kept = refit(differences, *args, **kwargs)
+        judged.extend(differences)
+        kept_by_refit.extend(kept)
+        return kept
+
+    monkeypatch.setattr(pipeline, "_refit", recording_refit)
+    trace = census.Trace()
+    with census.observing(trace):
+        pipeline.process_bundle(bundle, load_config(None))
+
+    # The raw masks recorded too, the filtered ones inside them.
+    assert trace.raw is not None and trace.masks is not None and trace.masks.added.any()
+    assert not (trace.masks.added & ~trace.raw.added).any()
+    deciding = set()
+    for difference in judged:
+        verdicts = trace.of(difference)
+        assert verdicts, "every difference the re-fit judged has its checks recorded"
+        dropped = all(difference is not k for k in kept_by_refit)
+        assert (census.decided(verdicts) != "reported") == dropped
+        # The checks after the one that explained it were not asked.
+        explained = [v.explained for v in verdicts]
+        assert explained.count(True) <= 1 and (not any(explained) or explained[-1])
+        deciding.add(census.decided(verdicts))
+    assert deciding == checks | {"reported"}
+
+
+def test_the_observers_record_each_checks_verdict_and_are_undone_whatever_happens(
     census: ModuleType,
 ) -> None:
     # A removed difference inside a block whose floor all round went unseen: the floor check
-    # explains it (share 0 < the pipeline's threshold); the faces check sees no wall round it.
+    # explains it (share 0 < the pipeline's threshold); no local wall lies round it to be seen
+    # from behind, so the faces check does not.
     global_state = np.full((20, 20), FREE, np.uint8)
     global_state[8:12, 8:12] = OCCUPIED
     local_state = np.full((20, 20), UNKNOWN, np.uint8)
     local_state[9:11, 9:11] = FREE
     cells = np.argwhere(local_state == FREE)
+    originals = {(m, n): getattr(m, n) for m, n in census.OBSERVED}
     trace = census.Trace()
-    before = refit_stage.floor_seen_share
-    with census.observing(trace):
+    with pytest.raises(RuntimeError, match="stop"), census.observing(trace):
         share = refit_stage.floor_seen_share(cells, global_state, local_state, resolution=0.05)
         faces = refit_stage.faces_seen_from_behind(
             cells, global_state == OCCUPIED, local_state, resolution=0.05
         )
-    assert share == 0.0
+        raise RuntimeError("stop")
+    assert share == 0.0 and faces.walls == 0
     verdicts = trace.verdicts[census._key(cells)]
-    assert [(v.check, v.explained) for v in verdicts] == [
-        ("floor", True),
-        ("faces", pipeline._folded(faces, 0.05)),
+    assert [(v.check, v.explained, v.shown) for v in verdicts] == [
+        ("floor", True, "0.00"),
+        ("faces", False, f"depth {faces.depth_m:.2f} m, walls 0, behind {faces.behind_share:.2f}"),
     ]
-    assert verdicts[0].value == "0.00"
-    assert refit_stage.floor_seen_share is before  # undone on exit
+    assert all(getattr(m, n) is f for (m, n), f in originals.items())
+
+
+def _difference(kind: str, cells: np.ndarray) -> Difference:
+    return Difference(kind, (0.6, 0.6), (0.5, 0.5, 0.7, 0.7), 0.01 * len(cells), len(cells), cells)
+
+
+@pytest.mark.parametrize(
+    "stage",
+    ["not compared", "no difference", "diff filters", "clusters", "judged", "reported"],
+)
+def test_each_miss_is_put_at_the_stage_that_lost_it(census: ModuleType, stage: str) -> None:
+    grid = Grid(0.0, 0.0, 0.05, 40, 40)  # 2 m x 2 m
+    change = Change(7, "removed", np.array([[0.5, 0.5], [0.7, 0.5], [0.7, 0.7], [0.5, 0.7]]), True)
+    inside = census.polygon_cells(grid, change, 0)
+    cells = np.argwhere(inside)
+    none = np.zeros(grid.shape, bool)
+    order = census.STAGES
+    trace = census.Trace(
+        compared=stage != "not compared",
+        grid=grid,
+        raw=DiffMasks(none, inside if order.index(stage) > 1 else none),
+        masks=DiffMasks(none, inside if order.index(stage) > 2 else none),
+        evidence=inside,
+    )
+    if order.index(stage) > 3:
+        kept = _difference("removed", cells)
+        trace.clusters.append(kept)
+        trace.kept.append(kept)
+        trace.verdicts[census._key(cells)] = [
+            census.Verdict("floor", stage == "judged", "0.50"),
+            *([census.Verdict("faces", False, "no walls")] if stage == "reported" else []),
+        ]
+
+    found, line = census.miss_line(change, trace)
+
+    assert found == stage and line.endswith(f"-> {stage}")
+    assert line.startswith("MISS 7 removed at (0.60,0.60) 0.20x0.20 m")
+    if stage != "not compared":
+        assert f"raw {int(order.index(stage) > 1) * len(cells)}," in line
+
+
+def test_the_fleets_own_comparison_is_not_recorded(
+    census: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With a map store, the pipeline compares again against the stored map's current version
+    # (pipeline._judged_on_current), with the same clustering and checks: not the bundle's
+    # own comparison, so the census records nothing of it.
+    grid = Grid(0.0, 0.0, 0.05, 20, 20)
+    mask = np.zeros(grid.shape, bool)
+    mask[5:9, 5:9] = True
+
+    def clusters() -> list[Difference]:
+        return cluster_stage.cluster_mask(mask, grid, "added", eps_m=0.3, min_samples=3)
+
+    monkeypatch.setattr(pipeline, "_judged_on_current", lambda *args, **kwargs: clusters())
+    trace = census.Trace()
+    with census.observing(trace):
+        on_current = pipeline._judged_on_current()
+        assert not trace.kept and not trace.paused
+        own = clusters()
+    assert len(on_current) == len(own) == 1 and trace.kept == own
