@@ -58,11 +58,11 @@ from numpy.typing import NDArray
 
 from mapserver import cluster as cluster_stage
 from mapserver import diff as diff_stage
-from mapserver import pipeline, roi
+from mapserver import pipeline
 from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
 from mapserver.errors import MapserverError
-from mapserver.grid import Grid
+from mapserver.grid import Grid, box_of_cells
 from mapserver.scoring import (
     Change,
     Difference,
@@ -146,13 +146,9 @@ def observing(trace: Trace) -> Iterator[Trace]:
     originals = {(module, name): getattr(module, name) for module, name in OBSERVED}
 
     def observed_diff(aligned: Any, *args: Any, **kwargs: Any) -> Any:
-        trace.raw = None
         masks, evidence = originals[(pipeline, "_diff")](aligned, *args, **kwargs)
         trace.compared = bool(aligned.compared)
         trace.grid, trace.masks, trace.evidence = aligned.view.grid, masks, evidence
-        trace.clusters.clear()
-        trace.kept.clear()
-        trace.verdicts.clear()
         return masks, evidence
 
     def observed_raw(*args: Any, **kwargs: Any) -> Any:
@@ -221,24 +217,40 @@ def _shown(value: Any) -> str:
     return str(bool(value))
 
 
-def polygon_cells(grid: Grid, change: Change, grow_px: int) -> NDArray[np.bool_]:
-    """(H, W) bool: the cells of ``grid`` inside the change's polygon, grown by ``grow_px``."""
-    inside = roi._fill(grid, change.polygon_xy)  # the polygon as the ROI fills its own
-    if not grow_px:
-        return inside
-    grown = cv2.dilate(inside.view(np.uint8), np.ones((2 * grow_px + 1,) * 2, np.uint8))
-    return np.asarray(grown.view(bool))
+def polygon_cells(
+    grid: Grid, change: Change, grow_px: int
+) -> tuple[tuple[slice, slice], NDArray[np.bool_], NDArray[np.bool_]]:
+    """The change's polygon on ``grid``, in the box around it only: the box ((rows, cols)
+    slices, room for ``grow_px`` included), its cells inside the polygon, and those grown by
+    ``grow_px`` (both bool arrays of the box's shape)."""
+    corners = np.rint(grid.to_pixel(change.polygon_xy)).astype(np.intp)
+    box = box_of_cells(corners[:, 1], corners[:, 0], grow_px + 1, grid.shape)
+    rows, cols = box
+    filled = np.zeros((max(rows.stop - rows.start, 0), max(cols.stop - cols.start, 0)), np.uint8)
+    if not filled.size:  # off the grid: an empty box
+        nothing = np.zeros((0, 0), bool)
+        return (slice(0, 0), slice(0, 0)), nothing, nothing
+    # Filled as roi._fill fills a polygon on the whole grid (the corners rounded there), in the
+    # box only.
+    cv2.fillPoly(filled, [corners.astype(np.int32)], 1, offset=(-cols.start, -rows.start))
+    kernel = np.ones((2 * grow_px + 1,) * 2, np.uint8)
+    return box, filled.view(bool), np.asarray(cv2.dilate(filled, kernel).view(bool))
 
 
 def _inside(
-    differences: list[cluster_stage.Difference], kind: str, cells: NDArray[np.bool_]
+    differences: list[cluster_stage.Difference],
+    kind: str,
+    box: tuple[slice, slice],
+    cells: NDArray[np.bool_],
 ) -> list[tuple[cluster_stage.Difference, int]]:
-    """The differences of ``kind`` with cells in ``cells``, and how many."""
-    out = []
+    """The differences of ``kind`` with cells in ``cells`` (a mask of ``box``), and how many."""
+    (rows, cols), out = box, []
     for d in differences:
         if d.kind != kind or d.cells is None:
             continue
-        n = int(cells[d.cells[:, 0], d.cells[:, 1]].sum())
+        r, c = d.cells[:, 0] - rows.start, d.cells[:, 1] - cols.start
+        within = (r >= 0) & (r < cells.shape[0]) & (c >= 0) & (c < cells.shape[1])
+        n = int(cells[r[within], c[within]].sum())
         if n:
             out.append((d, n))
     return out
@@ -267,17 +279,18 @@ def miss_line(change: Change, trace: Trace | None) -> tuple[str, str]:
         f"MISS {change.id} {change.kind} at ({p[:, 0].mean():.2f},{p[:, 1].mean():.2f}) "
         f"{np.ptp(p[:, 0]):.2f}x{np.ptp(p[:, 1]):.2f} m"
     )
-    if trace is None or not trace.compared or trace.grid is None or trace.masks is None:
+    if trace is None or not trace.compared:
         return "not compared", f"{head} -> not compared"
-    grown = polygon_cells(trace.grid, change, GROW_PX)
-    raw = getattr(trace.raw, change.kind) & grown if trace.raw is not None else np.zeros_like(grown)
-    mask = getattr(trace.masks, change.kind) & grown
-    line = f"{head}: polygon {int(polygon_cells(trace.grid, change, 0).sum())} cells, raw "
-    line += f"{int(raw.sum())}, mask {int(mask.sum())}"
+    assert trace.grid is not None and trace.raw is not None and trace.masks is not None
+    box, inside, grown = polygon_cells(trace.grid, change, GROW_PX)
+    raw = grown & getattr(trace.raw, change.kind)[box]
+    mask = grown & getattr(trace.masks, change.kind)[box]
+    line = f"{head}: polygon {int(inside.sum())} cells, raw {int(raw.sum())}, mask "
+    line += f"{int(mask.sum())}"
     if change.kind == "removed" and trace.evidence is not None:
-        line += f", evidence {int((trace.evidence & mask).sum())}"
-    clusters = _inside(trace.clusters, change.kind, grown)
-    kept = _inside(trace.kept, change.kind, grown)
+        line += f", evidence {int((trace.evidence[box] & mask).sum())}"
+    clusters = _inside(trace.clusters, change.kind, box, grown)
+    kept = _inside(trace.kept, change.kind, box, grown)
     line += "; clusters " + (", ".join(f"{n}/{d.pixels} px" for d, n in clusters) or "none")
     kept_text = ", ".join(
         f"{n}/{d.pixels} px ({_verdicts_text(trace.of(d)) or 'no check'})" for d, n in kept

@@ -264,7 +264,9 @@ def _difference(kind: str, cells: np.ndarray) -> Difference:
 def test_each_miss_is_put_at_the_stage_that_lost_it(census: ModuleType, stage: str) -> None:
     grid = Grid(0.0, 0.0, 0.05, 40, 40)  # 2 m x 2 m
     change = Change(7, "removed", np.array([[0.5, 0.5], [0.7, 0.5], [0.7, 0.7], [0.5, 0.7]]), True)
-    inside = census.polygon_cells(grid, change, 0)
+    box, in_box, _ = census.polygon_cells(grid, change, 0)
+    inside = np.zeros(grid.shape, bool)
+    inside[box] = in_box
     cells = np.argwhere(inside)
     none = np.zeros(grid.shape, bool)
     order = census.STAGES
