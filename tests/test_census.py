@@ -90,14 +90,17 @@ def edited(clean: tuple[Path, Path], tmp_path: Path) -> tuple[Path, Path, dict[s
     return copy, outbox, truth, int(first["id"])
 
 
-def _run(census: ModuleType, set_dir: Path, outbox: Path, every: bool) -> tuple[Any, list[str]]:
-    """The census of bundle b1: its counts and lines."""
+def _run(
+    census: ModuleType, set_dir: Path, outbox: Path, every: bool, config: Path | None = None
+) -> tuple[Any, list[str]]:
+    """The census of bundle b1 (with the configuration file ``config``): its counts and
+    lines."""
     case = census.find_cases(set_dir)[0]
     truth = parse_truth(yaml.safe_load(case.truth_path.read_text()))
     result_path = outbox / "b1" / "result.yaml"
     result = parse_result(yaml.safe_load(result_path.read_text())) if result_path.exists() else None
     counts = census.Census()
-    lines = census.census_of_bundle(case, truth, result, load_config(None), counts, every=every)
+    lines = census.census_of_bundle(case, truth, result, load_config(config), counts, every=every)
     return counts, lines
 
 
@@ -159,11 +162,7 @@ def test_an_untrusted_alignment_loses_its_changes_before_the_comparison(
     set_dir, outbox, _, _ = edited
     config = tmp_path / "untrusting.yaml"
     config.write_text(yaml.safe_dump({"pipeline": {"align": {"min_score": 1.0}}}))
-    counts = census.Census()
-    case = census.find_cases(set_dir)[0]
-    truth = parse_truth(yaml.safe_load(case.truth_path.read_text()))
-    result = parse_result(yaml.safe_load((outbox / "b1" / "result.yaml").read_text()))
-    lines = census.census_of_bundle(case, truth, result, load_config(config), counts, every=False)
+    counts, lines = _run(census, set_dir, outbox, every=False, config=config)
     assert lines[0].startswith("== b1: trusted False")
     assert any(line.startswith("  MISMATCH: the re-run reports 0 differences") for line in lines)
     assert counts.misses[("added", "not compared")] >= 1
