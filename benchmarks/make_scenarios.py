@@ -107,6 +107,7 @@ REAL_MAPS = {
     "tb3_world": "tb3_world/map.yaml",
     "willow_full": "willow_full/willow-full-0.05.yaml",
     "willow_2010": "willow_2010/willow-2010-02-18-0.10.yaml",
+    "izs_campus": "izs_campus/map.yaml",
 }
 
 # In a real map, a grey cell this far (share of the way from the map's unknown grey to black) is a
@@ -381,7 +382,11 @@ CASES: dict[str, Case] = {
         mislocalize=True,
     ),
     # Not in the default list (a set's seed keeps making the same scenarios): ask for it with
-    # --cases. A fleet's long sessions: 80-300 m, heading drift 0.05-0.1 deg/m, people walking.
+    # --cases. A campus mapped at 0.25 m (the coarsest map in ../shared/maps, outdoor, long
+    # rays): objects of 0.3-2 m are a few of its cells.
+    "campus": Case(_worlds("izs_campus"), (20, 60), session=_walkers(0, 1)),
+    # Also only with --cases. A fleet's long sessions: 80-300 m, heading drift 0.05-0.1 deg/m,
+    # people walking.
     "drifting": Case(
         _worlds("airport", "hospital", "ipa_production_plant", "willow_full", "office")
         + _worlds("mit_stata_basement"),
@@ -401,7 +406,7 @@ CASES: dict[str, Case] = {
         changes=_counts((4, 8), (1, 3), 1),
     ),
 }
-DEFAULT_CASES = tuple(c for c in CASES if c not in ("drifting", "floorplan", "wandering"))
+DEFAULT_CASES = tuple(c for c in CASES if c not in ("drifting", "floorplan", "wandering", "campus"))
 
 
 def scenario_seed(set_seed: int, index: int) -> int:
