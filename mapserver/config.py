@@ -110,7 +110,7 @@ class DiffConfig(_Frozen):
     """A removed obstacle must be seen free over at least this many local-map cells."""
     removed_depth_m: float = Field(0.15, ge=0)
     """A removed obstacle must be seen free this deep inside the structure (at least two cells
-    of the coarser map) ..."""
+    of the local map and one of the global map) ..."""
     see_through_m: float = Field(0.35, ge=0)
     """... or with open space on both sides within this distance: the robot looked through
     where it was. A wall face eroded by grazing rays has neither."""
