@@ -43,6 +43,9 @@ combo           several at once: drift, walkers, a 270-degree scanner, a wrong p
 drifting        (only with --cases) 80-300 m, heading drift 0.05-0.1 deg/m, 1-4 walkers
 wandering       (only with --cases) the same, the heading error a random walk of 0.03-0.1
                 deg per square-root metre (how shared/bench/public-realism's sessions drift)
+floorplan       (only with --cases) thin grey outlines (the RMF airport drawing, grey plans),
+                the prior 5-30 deg and 0.5-3 m off
+campus          (only with --cases) an outdoor campus mapped at 0.25 m (izs_campus)
 ==============  =============================================================================
 
 How the global map relates to the simulated world:
@@ -1001,7 +1004,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--cases",
         default=",".join(DEFAULT_CASES),
-        help=f"comma-separated, of: {', '.join(CASES)} (default: all but drifting)",
+        help=f"comma-separated, of: {', '.join(CASES)} (default: all but drifting, wandering, floorplan and campus)",
     )
     parser.add_argument(
         "--jobs", type=int, default=min(4, os.cpu_count() or 1), help="worker processes"

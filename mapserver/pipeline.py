@@ -491,23 +491,24 @@ def _diff_masks(
     return filtered, evidence
 
 
-def _removal_depth_m(floor_m: float, local_res: float, global_res: float) -> float:
+def _removal_depth_m(floor_m: float, local_res_m: float, global_res_m: float) -> float:
     """How deep inside the global structure a removed cell must be seen free to show the
     structure gone (the removal evidence's depth, before the distance from the route adds to
     it): at least ``floor_m``, two cells of the local map (grazing rays erode its faces by a
     cell or two) and one cell of the global map (a drawn cell is occupied when any part of it
-    was, so a face may lie anywhere inside its cells).
+    was, so a face may lie anywhere inside its cells): the largest of the three, not the sum
+    of the last two (measured below: the sum kept half the gain).
 
     Until session 18 two cells of the coarser of the two maps: on a global map of 0.25 m cells
     that asked 0.5 m, deeper than the middle of any object under a metre across. Twelve and
     eight bundles on the 0.25 m campus map (`make_scenarios.py --cases campus`, seeds 1919
     and 1818): 51 of 64 and 29 of 40 changes found instead of 44 and 26, no false positive
     either way; the 0.08-0.1 m coarse set (seed 1820) one false positive fewer; over the 46
-    sets of the README table one change fewer (fp21) and one false positive more (4711), both
-    at the evidence share's edge, every other result as before. One global cell plus one local
-    cell instead: 5 of those 10 changes, the same two losses elsewhere.
+    other sets of the README table one change fewer (seed 21) and one false positive more
+    (seed 4711), both at the evidence share's edge, every other result as before. One global
+    cell plus one local cell instead: 5 of those 10 changes, the same two losses elsewhere.
     """
-    return max(floor_m, 2 * local_res, global_res)
+    return max(floor_m, 2 * local_res_m, global_res_m)
 
 
 def _route_on(grid: Grid, route_xy: np.ndarray | None) -> RouteDistance | None:

@@ -308,11 +308,26 @@ def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> 
     assert near[44:46, 10:90].all() and not far.any()
 
 
+@pytest.mark.parametrize(
+    ("local_res_m", "global_res_m", "depth_m"),
+    [
+        (0.05, 0.05, 0.15),  # the configured floor
+        (0.1, 0.05, 0.2),  # two cells of a coarse local map
+        (0.05, 0.1, 0.15),  # one cell of a 0.1 m global map is under the floor (was 0.2)
+        (0.05, 0.25, 0.25),  # one cell of a 0.25 m global map (was 0.5)
+    ],
+)
+def test_the_depth_a_removal_must_show_is_two_local_cells_and_one_global_cell(
+    local_res_m: float, global_res_m: float, depth_m: float
+) -> None:
+    assert pipeline._removal_depth_m(0.15, local_res_m, global_res_m) == pytest.approx(depth_m)
+
+
 @pytest.mark.parametrize("seed", [0, 3])
 def test_removals_on_a_global_map_of_coarse_cells_are_found(tmp_path: Path, seed: int) -> None:
-    """On a global map of 0.25 m cells (a campus, a coarse scan) an object under a metre across
-    is two to four cells: its removal evidence asks one of them and two local cells of depth,
-    not two of them (0.5 m, deeper than its middle). Both seeds lost one removal that way."""
+    """On a global map of 0.25 m cells (a campus, a coarse scan) an object a metre or so
+    across is a few cells: its removal evidence asks one of them and two local cells of depth,
+    not two of them (0.5 m, as deep as its middle). Both seeds lost one removal that way."""
     world = synth.make_office_map(
         width_m=30, height_m=24, resolution=0.25, style="office", rng=np.random.default_rng(seed)
     )
