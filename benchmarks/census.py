@@ -63,6 +63,7 @@ from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
 from mapserver.errors import MapserverError
 from mapserver.grid import Grid, box_of_cells
+from mapserver.outbox import RESULT
 from mapserver.scoring import (
     Change,
     Difference,
@@ -432,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.bundles and not any(b in case.bundle_id for b in args.bundles):
             continue
         truth = parse_truth(yaml.safe_load(case.truth_path.read_text(encoding="utf-8")))
-        result_path = args.outbox / case.bundle_id / "result.yaml"
+        result_path = args.outbox / case.bundle_id / RESULT
         result = None
         if result_path.is_file():  # none: the bundle failed (bench_public writes no result)
             result = parse_result(yaml.safe_load(result_path.read_text(encoding="utf-8")))
