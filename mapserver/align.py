@@ -573,17 +573,34 @@ def _make_level(view: GlobalView, factor: int, pad: int) -> _Level:
     return _Level(grid, field, pad)
 
 
-def thin_points(points: FloatArray, resolution: float) -> FloatArray:
-    """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size):
-    the first point of each cell, in the cloud's order."""
+def thin_points(points: FloatArray, resolution: float, *, mean: bool = False) -> FloatArray:
+    """One point per cell of side ``resolution`` (keeps the cloud's shape, bounds its size),
+    cells in the order of their first point: that first point, or with ``mean`` the mean of
+    the cell's points.
+
+    The first point is a point of the cloud, but in a raster's row-major order it is the
+    cell's top-left one: where a cell holds a wall two cells thick, half a map cell off the
+    wall's middle. An ICP or a drift estimate on such points carries that offset into the
+    transform (a few millimetres, always the same way along the local map's axes); on the mean
+    it does not. The mean of a cell that holds a corner lies off the walls, though: ``mean``
+    for cells of a few map cells, not for the coarse ones of a search.
+    """
     keys = np.floor(points / resolution).astype(np.int64)
     if len(keys) == 0:
         return points[:0]
     # One integer per cell (rows of keys as one number: a 1-D unique, far faster than axis=0).
     keys -= keys.min(axis=0)
     cell = keys[:, 0] * (int(keys[:, 1].max()) + 1) + keys[:, 1]
-    _, index = np.unique(cell, return_index=True)
-    return np.asarray(points[np.sort(index)], dtype=np.float64)
+    if not mean:
+        _, index = np.unique(cell, return_index=True)
+        return np.asarray(points[np.sort(index)], dtype=np.float64)
+    _, first, inverse, counts = np.unique(
+        cell, return_index=True, return_inverse=True, return_counts=True
+    )
+    x = np.bincount(inverse, weights=points[:, 0]) / counts
+    y = np.bincount(inverse, weights=points[:, 1]) / counts
+    order = np.argsort(first)
+    return np.column_stack([x[order], y[order]])
 
 
 def _search_level(
@@ -969,7 +986,7 @@ def align(
 
     centre = walls.mean(axis=0)
     radius = max(float(np.sqrt(((walls - centre) ** 2).sum(axis=1)).max()), 1.0)
-    icp_walls = thin_points(walls, 2.0 * view.grid.resolution)
+    icp_walls = thin_points(walls, 2.0 * view.grid.resolution, mean=True)
     icp_reach = max(0.3, 4 * view.grid.resolution)
 
     def evaluate(theta_half: float) -> tuple[float, Transform2D]:

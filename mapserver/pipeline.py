@@ -311,9 +311,11 @@ def _estimate_drift(
     """The slam drift left over by ``transform``: coarse to fine shift fields (README, warp)."""
     a = config.pipeline.align
     grid = view.grid
-    # One wall point per two work cells: the shifts are averages over metres of wall.
+    # One wall point per two work cells (their mean): the shifts are averages over metres of
+    # wall.
     spacing = 2 * grid.resolution
-    walls = align_stage.thin_points(align_stage.known_points(local, state=OCCUPIED), spacing)
+    local_walls = align_stage.known_points(local, state=OCCUPIED)
+    walls = align_stage.thin_points(local_walls, spacing, mean=True)
     nearest = view.nearest_wall_near(transform.apply(walls), reach_m=reach_m)
     # Coarse to fine: large neighbourhoods take the bulk of the bend, small ones the rest.
     fields: list[deform.DriftField] = []

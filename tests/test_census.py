@@ -221,7 +221,9 @@ def test_the_verdicts_recorded_drop_exactly_what_the_refit_drops(
         explained = [v.explained for v in verdicts]
         assert explained.count(True) <= 1 and (not any(explained) or explained[-1])
         deciding.add(census.decided(verdicts))
-    assert deciding == checks | {"reported"}
+    # Each of the seed's checks decided at least once (others may too: which check explains a
+    # wall seen twice moves with the alignment's last millimetres).
+    assert checks | {"reported"} <= deciding
 
 
 def test_the_observers_record_each_checks_verdict_and_are_undone_whatever_happens(

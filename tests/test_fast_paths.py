@@ -372,13 +372,29 @@ def test_observed_roi_outline_on_the_box_is_the_whole_grid_one(seed: int) -> Non
     assert np.array_equal(got.mask, known)
 
 
+def _cells_in_first_order(points: np.ndarray, size: float) -> dict[tuple[int, int], list[int]]:
+    """The indices of the points in each cell, cells in the order of their first point."""
+    cells: dict[tuple[int, int], list[int]] = {}
+    for i, (x, y) in enumerate(points):
+        cells.setdefault((math.floor(x / size), math.floor(y / size)), []).append(i)
+    return cells
+
+
 def test_thin_keeps_the_first_point_of_every_cell() -> None:
     rng = np.random.default_rng(3)
     points = rng.normal(0.0, 3.0, (2000, 2))
-    keys = np.floor(points / 0.3).astype(np.int64)
-    _, index = np.unique(keys, axis=0, return_index=True)
-    assert np.array_equal(thin_points(points, 0.3), points[np.sort(index)])
+    expected = [members[0] for members in _cells_in_first_order(points, 0.3).values()]
+    assert np.array_equal(thin_points(points, 0.3), points[expected])
     assert len(thin_points(points[:0], 0.3)) == 0
+
+
+def test_thin_by_mean_keeps_each_cells_mean() -> None:
+    rng = np.random.default_rng(4)
+    points = rng.normal(0.0, 3.0, (2000, 2))
+    cells = _cells_in_first_order(points, 0.3)
+    expected = np.array([points[members].mean(axis=0) for members in cells.values()])
+    assert np.allclose(thin_points(points, 0.3, mean=True), expected, rtol=0.0, atol=1e-12)
+    assert len(thin_points(points[:0], 0.3, mean=True)) == 0
 
 
 @pytest.mark.parametrize("seed", range(4))

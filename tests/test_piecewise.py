@@ -257,14 +257,15 @@ def test_a_kink_the_warp_takes_for_drift_is_checked_without_fit_check(
 ) -> None:
     """A 5-9 degree kink is trusted whole, the drift warp bending the far side by up to 0.8 m
     (the largest shift it allows): with the fit check only on request (the default before),
-    4 to 20 false changes were reported. A drift correction that large now runs the check
+    false changes are reported (2 to 20 of them, as the drift estimate stood). A drift correction that large now runs the check
     and aligns the map in pieces too, which find the bend: the two planted boxes and nothing
     else. A session that did not drift does not pay for it."""
     bundle = _bent_bundle(tmp_path / "bent", bend_deg)
     unchecked = _with(Config(), "align", fit_check_drift_m=100.0)
     r = process_bundle(bundle, unchecked).result
     assert "pieces" not in r["alignment"] and r["alignment"]["drift_m"] >= 0.5
-    assert len(r["differences"]) > 4
+    false = [d for d in r["differences"] if not any(_near([d], box) for box in BOXES)]
+    assert len(false) >= 2, r["differences"]
 
     r = process_bundle(bundle, Config()).result
     assert "fit" in r["timings_ms"] and r["alignment"]["pieces"] == 2
