@@ -581,8 +581,8 @@ def thin_points(points: FloatArray, resolution: float, *, mean: bool = False) ->
     The first point is a point of the cloud, but in a raster's row-major order it is the
     cell's top-left one: where a cell holds a wall two cells thick, half a map cell off the
     wall's middle. An ICP or a drift estimate on such points carries that offset into the
-    transform (a few millimetres, always the same way along the local map's axes); on the mean
-    it does not. The mean of a cell that holds a corner lies off the walls, though: ``mean``
+    transform (a few millimetres, always the same way along the local map's axes); on the mean,
+    not that offset. The mean of a cell that holds a corner lies off the walls, though: ``mean``
     for cells of a few map cells, not for the coarse ones of a search.
     """
     keys = np.floor(points / resolution).astype(np.int64)

@@ -311,8 +311,8 @@ def _estimate_drift(
     """The slam drift left over by ``transform``: coarse to fine shift fields (README, warp)."""
     a = config.pipeline.align
     grid = view.grid
-    # One wall point per two work cells (their mean): the shifts are averages over metres of
-    # wall.
+    # One wall point per square of two work cells on a side, the mean of its wall points: the
+    # shifts are averages over metres of wall.
     spacing = 2 * grid.resolution
     local_walls = align_stage.known_points(local, state=OCCUPIED)
     walls = align_stage.thin_points(local_walls, spacing, mean=True)

@@ -200,24 +200,30 @@ def _icp_one(
 
 def test_wall_points_thinned_by_their_mean_keep_the_walls_middle() -> None:
     """Walls two cells thick, thinned to one point per two cells: the means lie on the walls'
-    middle, the first point of each block (in row-major order) half a cell up and left of it,
-    the offset an ICP on them once carried into the transform."""
+    middle line, the first point of each block (in row-major order) half a cell up and left of
+    it, the offset an ICP on them once carried into the transform."""
     state = np.full((60, 80), FREE, np.uint8)
     state[10:12, 4:76] = OCCUPIED  # along x
     state[14:58, 40:42] = OCCUPIED  # along y
-    walls = known_points(from_states(state, 0.05, (1.0, 2.0, 0.0)), state=OCCUPIED)
-    middle = walls.mean(axis=0)
+    local = from_states(state, 0.05, (1.0, 2.0, 0.0))
+    walls = known_points(local, state=OCCUPIED)
+    wall_y = float(local.pixel_to_world(np.array([0.0]), np.array([10.5]))[1][0])  # rows 10-11
+    wall_x = float(local.pixel_to_world(np.array([40.5]), np.array([0.0]))[0][0])  # cols 40-41
     by_mean = thin_points(walls, 0.1, mean=True)
     assert len(by_mean) == len(walls) // 4
-    np.testing.assert_allclose(by_mean.mean(axis=0), middle, rtol=0.0, atol=1e-9)
+    along_x = by_mean[:, 1] > 4.35  # the wall along x lies at y = 4.45, the other below 4.3
+    np.testing.assert_allclose(by_mean[along_x, 1], wall_y, rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(by_mean[~along_x, 0], wall_x, rtol=0.0, atol=1e-9)
     first = thin_points(walls, 0.1)
-    np.testing.assert_allclose(first.mean(axis=0) - middle, [-0.025, 0.025], rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(
+        first.mean(axis=0) - walls.mean(axis=0), [-0.025, 0.025], rtol=0.0, atol=1e-9
+    )
 
 
 def test_alignment_has_no_bias_in_the_local_maps_frame() -> None:
     """Over many planted transforms the error averages out: no offset along the local map's
-    own axes (the raster's rows and columns). Thinning that kept each block's first point put
-    the local map a few millimetres up and to the left every time (mean 4.4 mm here)."""
+    own axes (the raster's rows and columns). Thinning that kept each block's first point moved
+    the local map down and to the right on average (per-axis median 3.8 mm here)."""
     world = office(seed=3)
     gaps = []
     for k in range(24):
@@ -226,8 +232,9 @@ def test_alignment_has_no_bias_in_the_local_maps_frame() -> None:
         found = _run(world, cut.local, offset(truth, 0.1, -0.1, 1.0, CENTRE)).nav2_from_slam
         at = truth.inverse().apply(np.array(CENTRE))
         gaps.append(Transform2D(-truth.theta, 0.0, 0.0).apply(found.apply(at) - truth.apply(at)))
-    mean_gap = np.mean(gaps, axis=0)
-    assert float(np.hypot(*mean_gap)) < 0.002, f"mean offset {mean_gap} m (slam axes)"
+    assert max(float(np.hypot(*g)) for g in gaps) < 0.05
+    median_gap = np.median(gaps, axis=0)
+    assert float(np.hypot(*median_gap)) < 0.002, f"median offset {median_gap} m (slam axes)"
 
 
 def test_icp_polishes_each_start_on_its_own() -> None:

@@ -344,3 +344,30 @@ def test_removals_on_a_global_map_of_coarse_cells_are_found(tmp_path: Path, seed
     assert len(observed_removed) == 4 and score.n_observed == 6
     assert score.n_matched == score.n_observed
     assert score.n_false_positive == 0
+
+
+def test_the_drift_estimate_works_on_the_mean_of_each_block_of_wall_points(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The drift estimate's finest points are each two-cell block's mean (a block's first point
+    sat half a cell off a thick wall's middle, and the shifts carried it); its coarser passes
+    thin those means further, by their first, as a search does (a mean over a coarse cell that
+    holds a corner lies off the walls)."""
+    from mapserver.align import make_view
+
+    truth = Transform2D(0.7, 5.0, -3.0)
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=(12.0, 6.0), radius_m=8.0, nav2_from_slam=truth)
+    view = make_view(world, cut.local, truth, search_xy_m=2.5)
+    calls: list[tuple[float, bool]] = []
+    real = pipeline.align_stage.thin_points
+
+    def spy(points: np.ndarray, resolution: float, *, mean: bool = False) -> np.ndarray:
+        calls.append((resolution, mean))
+        return real(points, resolution, mean=mean)
+
+    monkeypatch.setattr(pipeline.align_stage, "thin_points", spy)
+    drift = pipeline._estimate_drift(cut.local, truth, view, Config(), reach_m=1.0)
+    assert drift.max_shift_m() < 0.05  # the true transform: next to nothing to correct
+    assert calls[0] == (2 * view.grid.resolution, True)
+    assert len(calls) >= 2 and not any(mean for _, mean in calls[1:])
