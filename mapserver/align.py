@@ -125,7 +125,9 @@ class Alignment:
     ``score`` (0..1) is the geometric mean of two shares: the local map's walls that lie on a
     global wall, and the global walls (inside what the robot saw) that the local map does not
     see through; ``prior_score`` is the same for the pose prior. ``trusted`` is false when even the
-    best transform agrees too little to compare the maps.
+    best transform agrees too little to compare the maps. ``unchanged_score``: set when the
+    transform was trusted on the structure that did not change although ``score`` is under the
+    minimum (see :func:`unchanged_score`).
     """
 
     nav2_from_slam: Transform2D
@@ -135,6 +137,7 @@ class Alignment:
     prior_score: float
     trusted: bool
     warnings: tuple[str, ...] = field(default=())
+    unchanged_score: float | None = None
 
 
 def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
@@ -537,6 +540,84 @@ def consistency(
             # the distance transform, several times cheaper (see diff.offset_distances).
             seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
     return 1.0 - float(np.count_nonzero(seen_free)) / n
+
+
+# A transform whose score is under the minimum is still trusted when its unchanged_score is at
+# least this much over the minimum (0.85 for the default 0.6; a minimum of 0.75 or more leaves
+# no room): a stricter bar, since it leaves out what disagrees as changes.
+UNCHANGED_MARGIN = 0.25
+# Local walls farther than this from every drawn structure are new objects in open floor (or
+# walls no alignment nearby explains); nearer, a wall the alignment put off a drawn one counts.
+_NEAR_STRUCTURE_M = 1.0
+# ... and at least this share of the local walls must lie that near, so that most of the map
+# is checked at all.
+_MIN_NEAR_SHARE = 0.3
+# A drawn structure (a connected group of cells) seen free over this share of its cells inside
+# what the robot saw is gone as a whole: a removal, not a misfit, which cuts structures partly.
+_GONE_SHARE = 0.8
+# ... and no more than this share of the drawn structures the robot saw may be gone.
+_MAX_GONE_SHARE = 0.4
+
+
+def unchanged_score(
+    local: OccupancyMap,
+    walls_slam: FloatArray,
+    nav2_from_slam: Transform2D,
+    view: GlobalView,
+    *,
+    tolerance_m: float,
+) -> float:
+    """The score of an alignment (as :func:`agreement` and :func:`consistency` make it) on the
+    structure that did not change: 0..1.
+
+    In a sparse hall the changes can outweigh the building: new objects in open floor pull the
+    agreement down, drawn columns seen gone the consistency, and a transform right to a few
+    centimetres scores under the minimum. A person sees at once that what is left fits. Here:
+
+    - the agreement counts only the local walls (``walls_slam``, slam metres) within
+      ``_NEAR_STRUCTURE_M`` of a drawn structure, and at least ``_MIN_NEAR_SHARE`` of them
+      must lie there (else 0);
+    - the consistency leaves out each drawn structure seen free nearly whole (``_GONE_SHARE``
+      of its cells the robot saw), up to ``_MAX_GONE_SHARE`` of the structures it saw (else 0).
+
+    A wrong transform puts local walls beside the drawn ones (within reach, off the tolerance)
+    and runs drawn walls partly through seen floor: both still count against it.
+    """
+    if len(walls_slam) == 0:
+        return 0.0
+    on_slam = nav2_from_slam.apply(walls_slam)
+    on = view.grid.sample(view.near_walls(tolerance_m), on_slam, False)
+    near_structure = view.grid.sample(view.near_walls(_NEAR_STRUCTURE_M), on_slam, False)
+    checked = int(np.count_nonzero(near_structure))
+    if checked < 20 or checked < _MIN_NEAR_SHARE * len(walls_slam):
+        return 0.0
+    agree = float(np.count_nonzero(on & near_structure)) / checked
+    res = view.grid.resolution
+    reach = offset_distances(tolerance_m / res)
+    landing = landing_box(local, view.grid, nav2_from_slam, margin_px=reach.shape[0] // 2 + 2)
+    if landing is None:
+        return 0.0
+    r0, r1, c0, c1 = landing
+    local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
+    structure = view.structure[r0:r1, c0:c1]
+    walls = structure & (local_state != UNKNOWN)
+    seen_free = walls & (local_state == FREE)
+    local_walls = local_state == OCCUPIED
+    if seen_free.any() and local_walls.any():
+        seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
+    n, labels = cv2.connectedComponents(structure.view(np.uint8), connectivity=8)
+    seen = np.bincount(labels[walls], minlength=n)
+    free = np.bincount(labels[seen_free], minlength=n)
+    seen[0] = 0  # label 0: no structure
+    gone = (seen > 0) & (free >= _GONE_SHARE * seen)
+    # Counted in structures, not cells: one seen gone shows all its cells, one standing only its
+    # faces.
+    structures = int(np.count_nonzero(seen))
+    left = int(seen[~gone].sum())
+    if left == 0 or np.count_nonzero(gone) > _MAX_GONE_SHARE * structures:
+        return 0.0
+    consistent = 1.0 - float(free[~gone].sum()) / left
+    return math.sqrt(agree * consistent)
 
 
 # --- correlative search ----------------------------------------------------------------------
@@ -971,13 +1052,26 @@ def align(
 
     prior_score = score(prior)
 
+    def trust(t: Transform2D, s: float) -> tuple[bool, float | None]:
+        """Trusted, and the unchanged score when that is what trusts it."""
+        if s >= min_score:
+            return True, None
+        unchanged = unchanged_score(local, walls, t, view, tolerance_m=tolerance_m)
+        if unchanged < min_score + UNCHANGED_MARGIN:
+            warnings.append(_untrusted(s, min_score))
+            return False, None
+        warnings.append(_trusted_unchanged(s, min_score, unchanged))
+        return True, unchanged
+
     def keep_prior(reason: str | None) -> Alignment:
-        trusted = reason is None and prior_score >= min_score
         if reason:
             warnings.append(reason)
-        elif not trusted:
-            warnings.append(_untrusted(prior_score, min_score))
-        return Alignment(prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings))
+            trusted, unchanged = False, None
+        else:
+            trusted, unchanged = trust(prior, prior_score)
+        return Alignment(
+            prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings), unchanged
+        )
 
     if len(walls) < 20 or not view.structure.any():
         return keep_prior("too few walls in the local or global map to check the alignment")
@@ -1052,9 +1146,7 @@ def align(
     jump = _distance(chosen, prior, centre, radius) > jump_m
     if chosen_score < prior_score + (min_gain if jump else 1e-6):
         return keep_prior(None)
-    trusted = chosen_score >= min_score
-    if not trusted:
-        warnings.append(_untrusted(chosen_score, min_score))
+    trusted, unchanged = trust(chosen, chosen_score)
     return Alignment(
         chosen,
         "pose+correlative+icp",
@@ -1063,6 +1155,7 @@ def align(
         prior_score,
         trusted,
         tuple(warnings),
+        unchanged,
     )
 
 
@@ -1070,6 +1163,14 @@ def _untrusted(score: float, min_score: float) -> str:
     return (
         f"could not align the local map onto the global map (agreement {score:.2f} < "
         f"{min_score:.2f}): no differences reported; check the robot's localisation"
+    )
+
+
+def _trusted_unchanged(score: float, min_score: float, unchanged: float) -> str:
+    return (
+        f"aligned on the structure that did not change: score {score:.2f} < {min_score:.2f} over "
+        f"all walls, {unchanged:.2f} over the drawn structure still standing and the local walls "
+        "near it (many changes: new objects in open floor, drawn structure seen gone)"
     )
 
 
@@ -1086,4 +1187,5 @@ __all__ = [
     "make_view",
     "structure_mask",
     "thin_points",
+    "unchanged_score",
 ]

@@ -1255,6 +1255,9 @@ def _alignment_doc(
         "trusted": aligned.compared,
         "min_score": min_score,
     }
+    if alignment.unchanged_score is not None:
+        # Trusted under min_score: on the structure that did not change (align.unchanged_score).
+        doc["unchanged_score"] = round(alignment.unchanged_score, 3)
     if pieces is not None:
         doc["method"] = f"{alignment.method}+pieces"
         doc["trusted_area_m2"] = round(pieces.trusted_area_m2 * kept, 1)

@@ -7,9 +7,10 @@ import math
 import cv2
 import numpy as np
 import pytest
-from worlds import colonnade, cut_local, office, offset
+from worlds import changed, colonnade, cut_local, office, offset
 
 from mapserver.align import (
+    UNCHANGED_MARGIN,
     NearestWall,
     align,
     icp,
@@ -18,6 +19,7 @@ from mapserver.align import (
     make_view,
     structure_mask,
     thin_points,
+    unchanged_score,
 )
 from mapserver.geometry import Transform2D, fit_rigid, wrap_angle
 from mapserver.grid import Grid
@@ -70,6 +72,66 @@ def test_different_resolutions(global_res: float, local_res: float) -> None:
     d, a = _errors(result.nav2_from_slam, TRUE, CENTRE)
     assert d < max(0.04, global_res / 2), f"position error {d:.3f} m"
     assert a < 0.4
+
+
+# A hall of columns 6 m apart, seen over 8 m around HALL_CENTRE: two of its six columns there
+# gone and three new objects in open floor, more change than building.
+HALL_TRUTH = Transform2D(0.4, 20.0, 8.0)
+HALL_CENTRE = (31.0, 15.0)
+HALL_GONE = [(28.0, 13.5), (34.0, 19.5)]  # columns' lower left corners (0.5 m squares)
+HALL_NEW = [(30.0, 11.0, 31.0, 11.6), (25.0, 17.0, 25.8, 17.6), (36.5, 16.0, 37.1, 16.6)]
+
+
+def _hall(gone: list[tuple[float, float]]) -> tuple[OccupancyMap, OccupancyMap]:
+    world = colonnade(spacing_m=6.0)
+    edits = [("clear", x, y, x + 0.5, y + 0.5) for x, y in gone]
+    edits += [("add", *box) for box in HALL_NEW]
+    cut = cut_local(
+        changed(world, edits), centre_xy=HALL_CENTRE, radius_m=8.0, nav2_from_slam=HALL_TRUTH
+    )
+    return world, cut.local
+
+
+def test_a_hall_with_more_change_than_building_is_trusted_on_what_did_not_change() -> None:
+    """The right transform scores under min_score over all walls (new objects off every drawn
+    wall, columns seen gone), yet every column still standing fits: trusted, and it says why."""
+    world, local = _hall(HALL_GONE)
+    result = _run(world, local, offset(HALL_TRUTH, 0.1, -0.1, 1.0, HALL_CENTRE))
+    d, a = _errors(result.nav2_from_slam, HALL_TRUTH, HALL_CENTRE)
+    assert d < 0.03 and a < 0.3
+    assert result.score < 0.6 and result.trusted
+    assert result.unchanged_score is not None
+    assert result.unchanged_score >= 0.6 + UNCHANGED_MARGIN
+    assert any("aligned on the structure that did not change" in w for w in result.warnings)
+    # A stricter minimum raises that bar too: at 0.8, 1.05 is out of reach.
+    strict = _run(world, local, offset(HALL_TRUTH, 0.1, -0.1, 1.0, HALL_CENTRE), min_score=0.8)
+    assert not strict.trusted and strict.unchanged_score is None
+
+
+@pytest.mark.parametrize(("dx", "dy", "dtheta_deg"), [(0.3, 0.0, 0.0), (0.0, 0.6, 2.0)])
+def test_a_wrong_transform_is_not_trusted_on_what_did_not_change(
+    dx: float, dy: float, dtheta_deg: float
+) -> None:
+    """Off by decimetres, the local walls lie beside the columns and the columns run partly
+    through seen floor: both still count."""
+    world, local = _hall(HALL_GONE)
+    wrong = offset(HALL_TRUTH, dx, dy, dtheta_deg, HALL_CENTRE)
+    result = _run(world, local, wrong, refine=False)
+    assert not result.trusted and result.unchanged_score is None
+    view = make_view(world, local, wrong, search_xy_m=2.5)
+    walls = known_points(local, state=OCCUPIED)
+    assert unchanged_score(local, walls, wrong, view, tolerance_m=0.1) < 0.65
+
+
+def test_no_more_than_a_share_of_the_building_may_be_gone() -> None:
+    """Most columns seen gone is no longer a hall that changed a little: not excused."""
+    world, local = _hall([(x, y) for x in (28.0, 34.0) for y in (7.5, 13.5, 19.5)])
+    view = make_view(world, local, HALL_TRUTH, search_xy_m=2.5)
+    walls = known_points(local, state=OCCUPIED)
+    assert unchanged_score(local, walls, HALL_TRUTH, view, tolerance_m=0.1) == 0.0
+    _, local = _hall(HALL_GONE)
+    walls = known_points(local, state=OCCUPIED)
+    assert unchanged_score(local, walls, HALL_TRUTH, view, tolerance_m=0.1) > 0.95
 
 
 def test_repeated_columns_do_not_pull_away_from_a_good_prior() -> None:

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from worlds import changed, cut_local, office, offset, write_bundle
+from worlds import changed, colonnade, cut_local, office, offset, write_bundle
 
 from mapserver import diff as diff_stage
 from mapserver import pipeline, synth
@@ -371,3 +371,27 @@ def test_the_drift_estimate_works_on_the_mean_of_each_block_of_wall_points(
     assert drift.max_shift_m() < 0.05  # the true transform: next to nothing to correct
     assert calls[0] == (2 * view.grid.resolution, True)
     assert len(calls) >= 2 and not any(mean for _, mean in calls[1:])
+
+
+def test_a_hall_trusted_on_what_did_not_change_says_so_in_its_result(tmp_path: Path) -> None:
+    """More change than building (two of six columns gone, three new objects): the alignment
+    scores under min_score, is trusted on the structure still standing, and result.yaml says
+    both; the gone columns and the new objects are reported."""
+    from test_align import HALL_CENTRE, HALL_GONE, HALL_NEW, HALL_TRUTH
+
+    world = colonnade(spacing_m=6.0)
+    edits = [("clear", x, y, x + 0.5, y + 0.5) for x, y in HALL_GONE]
+    edits += [("add", *box) for box in HALL_NEW]
+    cut = cut_local(
+        changed(world, edits), centre_xy=HALL_CENTRE, radius_m=8.0, nav2_from_slam=HALL_TRUTH
+    )
+    prior = offset(HALL_TRUTH, 0.1, -0.1, 1.0, HALL_CENTRE)
+    result = process_bundle(write_bundle(tmp_path / "hall", world, cut, prior=prior), Config())
+    alignment = result.result["alignment"]
+    assert alignment["trusted"] and alignment["score"] < alignment["min_score"]
+    assert alignment["unchanged_score"] >= 0.85
+    assert any(
+        "aligned on the structure that did not change" in w for w in result.result["warnings"]
+    )
+    kinds = sorted(d["kind"] for d in result.result["differences"])
+    assert kinds.count("removed") == len(HALL_GONE) and kinds.count("added") >= len(HALL_NEW)
