@@ -543,8 +543,8 @@ def consistency(
 
 
 # A transform whose score is under the minimum is still trusted when its unchanged_score is at
-# least this much over the minimum (0.85 for the default 0.6; a minimum of 0.75 or more leaves
-# no room): a stricter bar, since it leaves out what disagrees as changes.
+# least this much over the minimum (0.85 for the default 0.6; a minimum over 0.75 leaves no
+# room): a stricter bar, since it leaves out what disagrees as changes.
 UNCHANGED_MARGIN = 0.25
 # Local walls farther than this from every drawn structure are new objects in open floor (or
 # walls no alignment nearby explains); nearer, a wall the alignment put off a drawn one counts.
@@ -557,6 +557,12 @@ _MIN_NEAR_SHARE = 0.3
 _GONE_SHARE = 0.8
 # ... and no more than this share of the drawn structures the robot saw may be gone.
 _MAX_GONE_SHARE = 0.4
+# Only an object can be gone whole: a structure whose bounding box is at most this across
+# (a column, a shelf, a kiosk; not a building's joined walls, one structure of the map).
+_MAX_GONE_M = 2.0
+# A structure of which the robot saw fewer cells than this (a sliver at the edge of what it
+# saw) is not counted among the structures seen, gone or standing.
+_MIN_SEEN_CELLS = 20
 
 
 def unchanged_score(
@@ -577,11 +583,15 @@ def unchanged_score(
     - the agreement counts only the local walls (``walls_slam``, slam metres) within
       ``_NEAR_STRUCTURE_M`` of a drawn structure, and at least ``_MIN_NEAR_SHARE`` of them
       must lie there (else 0);
-    - the consistency leaves out each drawn structure seen free nearly whole (``_GONE_SHARE``
-      of its cells the robot saw), up to ``_MAX_GONE_SHARE`` of the structures it saw (else 0).
+    - the consistency leaves out each drawn structure (8-connected drawn cells) at most
+      ``_MAX_GONE_M`` across that the robot saw free over ``_GONE_SHARE`` of its seen cells,
+      up to ``_MAX_GONE_SHARE`` of the structures it saw (``_MIN_SEEN_CELLS`` or more of their
+      cells; else 0).
 
     A wrong transform puts local walls beside the drawn ones (within reach, off the tolerance)
-    and runs drawn walls partly through seen floor: both still count against it.
+    and runs drawn walls partly through seen floor: both still count against it. Not a wrong
+    one by a whole period of repeated structure (a hall of identical columns, a prior off by
+    their spacing): there, as for a hall that did not change, nothing in view tells them apart.
     """
     if len(walls_slam) == 0:
         return 0.0
@@ -605,16 +615,17 @@ def unchanged_score(
     local_walls = local_state == OCCUPIED
     if seen_free.any() and local_walls.any():
         seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
-    n, labels = cv2.connectedComponents(structure.view(np.uint8), connectivity=8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(structure.view(np.uint8), connectivity=8)
     seen = np.bincount(labels[walls], minlength=n)
     free = np.bincount(labels[seen_free], minlength=n)
     seen[0] = 0  # label 0: no structure
-    gone = (seen > 0) & (free >= _GONE_SHARE * seen)
+    counted = seen >= _MIN_SEEN_CELLS
+    across = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) * res
+    gone = counted & (across <= _MAX_GONE_M) & (free >= _GONE_SHARE * seen)
     # Counted in structures, not cells: one seen gone shows all its cells, one standing only its
     # faces.
-    structures = int(np.count_nonzero(seen))
     left = int(seen[~gone].sum())
-    if left == 0 or np.count_nonzero(gone) > _MAX_GONE_SHARE * structures:
+    if left == 0 or np.count_nonzero(gone) > _MAX_GONE_SHARE * np.count_nonzero(counted):
         return 0.0
     consistent = 1.0 - float(free[~gone].sum()) / left
     return math.sqrt(agree * consistent)

@@ -1255,7 +1255,7 @@ def _alignment_doc(
         "trusted": aligned.compared,
         "min_score": min_score,
     }
-    if alignment.unchanged_score is not None:
+    if alignment.unchanged_score is not None and not aligned.in_pieces:
         # Trusted under min_score: on the structure that did not change (align.unchanged_score).
         doc["unchanged_score"] = round(alignment.unchanged_score, 3)
     if pieces is not None:
