@@ -517,13 +517,11 @@ def consistency(
     res = view.grid.resolution
     reach = offset_distances(tolerance_m / res)
     k = reach.shape[0] // 2
-    # Only the box around the local map's known cells (and the tolerance's reach) counts: warp
-    # onto the cells they can land on, then keep the box around where they did.
-    landing = landing_box(local, view.grid, nav2_from_slam, margin_px=k + 2)
-    if landing is None:
+    landed = _landed(local, nav2_from_slam, view, k)
+    if landed is None:
         return 0.0
-    local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
-    structure = view.structure[landing[0] : landing[1], landing[2] : landing[3]]
+    local_state, structure = landed
+    # Only the box around the local map's known cells (and the tolerance's reach) counts.
     box = box_around(local_state != UNKNOWN, k)
     if box is None:
         return 0.0
@@ -532,6 +530,34 @@ def consistency(
     n = int(np.count_nonzero(walls))
     if n == 0:
         return 0.0
+    seen_free = _seen_through(walls, local_state, reach, res, tolerance_m)
+    return 1.0 - float(np.count_nonzero(seen_free)) / n
+
+
+def _landed(
+    local: OccupancyMap, nav2_from_slam: Transform2D, view: GlobalView, reach_px: int
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_]] | None:
+    """The local map's states warped onto the box of ``view``'s grid its known cells land in
+    (with ``reach_px`` and two pixels more around), and the view's structure there; None when
+    none lands on the grid."""
+    landing = landing_box(local, view.grid, nav2_from_slam, margin_px=reach_px + 2)
+    if landing is None:
+        return None
+    r0, r1, c0, c1 = landing
+    local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
+    return local_state, view.structure[r0:r1, c0:c1]
+
+
+def _seen_through(
+    walls: NDArray[np.bool_],
+    local_state: NDArray[np.uint8],
+    reach: NDArray[np.float32],
+    res: float,
+    tolerance_m: float,
+) -> NDArray[np.bool_]:
+    """The cells of ``walls`` (global walls the local map knows) that it sees free with no
+    local wall within ``tolerance_m`` (``reach``: :func:`~mapserver.diff.offset_distances`
+    for it at ``res``)."""
     seen_free = walls & (local_state == FREE)
     if seen_free.any():
         local_walls = local_state == OCCUPIED
@@ -539,7 +565,7 @@ def consistency(
             # "No local wall within tolerance" as a dilation: the same cells as thresholding
             # the distance transform, several times cheaper (see diff.offset_distances).
             seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
-    return 1.0 - float(np.count_nonzero(seen_free)) / n
+    return np.asarray(seen_free, dtype=bool)
 
 
 # A transform whose score is under the minimum is still trusted when its unchanged_score is at
@@ -604,17 +630,12 @@ def unchanged_score(
     agree = float(np.count_nonzero(on & near_structure)) / checked
     res = view.grid.resolution
     reach = offset_distances(tolerance_m / res)
-    landing = landing_box(local, view.grid, nav2_from_slam, margin_px=reach.shape[0] // 2 + 2)
-    if landing is None:
+    landed = _landed(local, nav2_from_slam, view, reach.shape[0] // 2)
+    if landed is None:
         return 0.0
-    r0, r1, c0, c1 = landing
-    local_state = resample(local.state, Grid.of_map(local), view.grid.crop(landing), nav2_from_slam)
-    structure = view.structure[r0:r1, c0:c1]
+    local_state, structure = landed
     walls = structure & (local_state != UNKNOWN)
-    seen_free = walls & (local_state == FREE)
-    local_walls = local_state == OCCUPIED
-    if seen_free.any() and local_walls.any():
-        seen_free &= ~near(local_walls, ~(reach * res > tolerance_m))
+    seen_free = _seen_through(walls, local_state, reach, res, tolerance_m)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(structure.view(np.uint8), connectivity=8)
     seen = np.bincount(labels[walls], minlength=n)
     free = np.bincount(labels[seen_free], minlength=n)
