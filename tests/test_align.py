@@ -7,7 +7,16 @@ import math
 import cv2
 import numpy as np
 import pytest
-from worlds import changed, colonnade, cut_local, office, offset
+from worlds import (
+    HALL_CENTRE,
+    HALL_GONE,
+    HALL_TRUTH,
+    changed_hall,
+    colonnade,
+    cut_local,
+    office,
+    offset,
+)
 
 from mapserver.align import (
     UNCHANGED_MARGIN,
@@ -74,21 +83,8 @@ def test_different_resolutions(global_res: float, local_res: float) -> None:
     assert a < 0.4
 
 
-# A hall of columns 6 m apart, seen over 8 m around HALL_CENTRE: two of its six columns there
-# gone and three new objects in open floor, more change than building.
-HALL_TRUTH = Transform2D(0.4, 20.0, 8.0)
-HALL_CENTRE = (31.0, 15.0)
-HALL_GONE = [(28.0, 13.5), (34.0, 19.5)]  # columns' lower left corners (0.5 m squares)
-HALL_NEW = [(30.0, 11.0, 31.0, 11.6), (25.0, 17.0, 25.8, 17.6), (36.5, 16.0, 37.1, 16.6)]
-
-
 def _hall(gone: list[tuple[float, float]]) -> tuple[OccupancyMap, OccupancyMap]:
-    world = colonnade(spacing_m=6.0)
-    edits = [("clear", x, y, x + 0.5, y + 0.5) for x, y in gone]
-    edits += [("add", *box) for box in HALL_NEW]
-    cut = cut_local(
-        changed(world, edits), centre_xy=HALL_CENTRE, radius_m=8.0, nav2_from_slam=HALL_TRUTH
-    )
+    world, cut = changed_hall(gone)
     return world, cut.local
 
 

@@ -11,7 +11,18 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from worlds import changed, colonnade, cut_local, office, offset, write_bundle
+from worlds import (
+    HALL_CENTRE,
+    HALL_GONE,
+    HALL_NEW,
+    HALL_TRUTH,
+    changed,
+    changed_hall,
+    cut_local,
+    office,
+    offset,
+    write_bundle,
+)
 
 from mapserver import diff as diff_stage
 from mapserver import pipeline, synth
@@ -377,14 +388,7 @@ def test_a_hall_trusted_on_what_did_not_change_says_so_in_its_result(tmp_path: P
     """More change than building (two of six columns gone, three new objects): the alignment
     scores under min_score, is trusted on the structure still standing, and result.yaml says
     both; the gone columns and the new objects are reported."""
-    from test_align import HALL_CENTRE, HALL_GONE, HALL_NEW, HALL_TRUTH
-
-    world = colonnade(spacing_m=6.0)
-    edits = [("clear", x, y, x + 0.5, y + 0.5) for x, y in HALL_GONE]
-    edits += [("add", *box) for box in HALL_NEW]
-    cut = cut_local(
-        changed(world, edits), centre_xy=HALL_CENTRE, radius_m=8.0, nav2_from_slam=HALL_TRUTH
-    )
+    world, cut = changed_hall(HALL_GONE)
     prior = offset(HALL_TRUTH, 0.1, -0.1, 1.0, HALL_CENTRE)
     result = process_bundle(write_bundle(tmp_path / "hall", world, cut, prior=prior), Config())
     alignment = result.result["alignment"]

@@ -125,6 +125,26 @@ def changed(
     return from_states(state, world.resolution, world.origin)
 
 
+# A hall of columns 6 m apart (colonnade), seen over 8 m around HALL_CENTRE: two of its six
+# columns there gone and three new objects in open floor, more change than building.
+HALL_TRUTH = Transform2D(0.4, 20.0, 8.0)
+HALL_CENTRE = (31.0, 15.0)
+HALL_GONE = [(28.0, 13.5), (34.0, 19.5)]  # columns' lower left corners (0.5 m squares)
+HALL_NEW = [(30.0, 11.0, 31.0, 11.6), (25.0, 17.0, 25.8, 17.6), (36.5, 16.0, 37.1, 16.6)]
+
+
+def changed_hall(gone: list[tuple[float, float]]) -> tuple[OccupancyMap, Cut]:
+    """The hall as drawn, and what a robot at HALL_CENTRE knows of it with the columns at
+    ``gone`` cleared and HALL_NEW added."""
+    world = colonnade(spacing_m=6.0)
+    edits = [("clear", x, y, x + 0.5, y + 0.5) for x, y in gone]
+    edits += [("add", *box) for box in HALL_NEW]
+    cut = cut_local(
+        changed(world, edits), centre_xy=HALL_CENTRE, radius_m=8.0, nav2_from_slam=HALL_TRUTH
+    )
+    return world, cut
+
+
 def offset(
     t: Transform2D, dx: float, dy: float, dtheta_deg: float, about: tuple[float, float]
 ) -> Transform2D:
