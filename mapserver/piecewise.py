@@ -6,8 +6,9 @@ building. Here the local map is cut into pieces along the robot's route (each ce
 the piece of the route nearest to it through free space: the one that saw it), and each piece
 is aligned on its own, starting from its neighbour's transform (drift grows slowly along the
 route) and, for the first, from the whole-map transform. The trusted pieces are the largest
-chain of pieces that score at least ``min_score`` and agree with each other where they meet.
-Only trusted pieces are compared.
+chain of pieces that align on their own (a score of at least ``min_score``, or under it on the
+structure that did not change) and agree with each other where they meet. Only trusted pieces
+are compared.
 
 Pure functions on arrays; ``[row, col]`` indexing throughout, row 0 at the top.
 """
@@ -41,6 +42,11 @@ class Piece:
     ``mask`` is (H, W) bool on the local map's grid: the known cells of this piece. ``junction``
     is the slam-frame point where the piece's route starts (where it meets the previous piece),
     ``run`` the piece's stretch of the route (M, 2), slam frame.
+
+    ``score`` is its own alignment's (0 when it had too few walls to be aligned), ``aligned``
+    whether that alignment is trusted on its own (``score`` at least ``min_score``, or under
+    it on the structure that did not change: :func:`mapserver.align.unchanged_score`), and
+    ``trusted`` whether the piece is compared (aligned, and in the chain of pieces that agree).
     """
 
     index: int
@@ -51,6 +57,7 @@ class Piece:
     area_m2: float
     junction: tuple[float, float]
     run: FloatArray
+    aligned: bool
 
 
 @dataclass(frozen=True)
@@ -205,12 +212,13 @@ def align_pieces(
     """Align the local map in pieces along ``route_slam`` (N, 2), slam frame, metres.
 
     Pieces are aligned in route order from the end (where the robot was when it reported its
-    pose), each starting from the transform of the last one after it that scored ``min_score``
-    or more, and those before the first such from ``start`` (and from ``also_from`` too when
-    given, keeping the better fit: the whole map's alignment, for a prior that is off).
+    pose), each starting from the transform of the last one after it that aligned (its own
+    alignment trusted: ``Piece.aligned``), and those before the first such from ``start`` (and
+    from ``also_from`` too when given, keeping the better fit, a trusted one before a better
+    score: the whole map's alignment, for a prior that is off).
 
-    The trusted pieces are the largest (by area) chain of pieces that score ``min_score`` or
-    more and agree with each other: where each meets the one before it in the chain, the two
+    The trusted pieces are the largest (by area) chain of aligned pieces that agree with each
+    other: where each meets the one before it in the chain, the two
     transforms put that point within ``agree_m`` of each other. A piece that found a wrong
     match jumps; drift does not. Not the chain that holds the last piece: when the prior is
     off and the last piece took a wrong match (repeated rooms), the rest of the route,
@@ -242,7 +250,7 @@ def align_pieces(
         walls = int(walls_of[i])
         if walls < min_walls:
             # Too few walls to align: the piece keeps its start, never scores.
-            return Piece(i, mask, starts[0], 0.0, False, area, junction, runs[i])
+            return Piece(i, mask, starts[0], 0.0, False, area, junction, runs[i], aligned=False)
         sub = _sub_map(local, mask)
         result = max(
             (
@@ -258,15 +266,16 @@ def align_pieces(
                 )
                 for t0 in starts
             ),
-            key=lambda r: r.score,
+            # A fit trusted on what did not change beats an untrusted one that scores more.
+            key=lambda r: (r.trusted, r.score),
         )
-        t = result.nav2_from_slam
-        return Piece(i, mask, t, result.score, result.trusted, area, junction, runs[i])
+        t, ok = result.nav2_from_slam, result.trusted
+        return Piece(i, mask, t, result.score, ok, area, junction, runs[i], aligned=ok)
 
     for i in reversed(range(len(runs))):
         starts = [prior] if from_piece or also_from is None else [prior, also_from]
         piece = fit(i, starts)
-        if piece.trusted:
+        if piece.aligned:
             prior, from_piece = piece.nav2_from_slam, True
         if anchored is not None and i == len(runs) - 1 and not anchored(piece):
             return None
@@ -318,15 +327,13 @@ def grow_chain(
     route, a wrong match among them too; the chain's end piece is the better start. Each piece
     beyond an end is aligned again from that end's transform (``fit(index, start, pivot)``,
     turned about the point of its run nearest the end: ``-1`` its run's end growing backwards,
-    ``0`` its start growing forwards) and joins
-    when it scores, meets the end within ``agree_m`` and turns no more than ``max_turn_rad``
-    from the heading the chain's drift predicts for it (:func:`heading_trend`: turned about
-    the point where it meets the end, a wrong match meets it too); it then becomes the end.
-    One piece
-    that does not join is stepped over (a piece with too few walls, a stretch of clutter); the
-    next is then measured against the end at the middle of the stepped-over run, not where it
-    starts (a route's drift turns the two transforms apart over the run between them). Two in
-    a row stop the growth.
+    ``0`` its start growing forwards) and joins when it aligns, meets the end within
+    ``agree_m`` and turns no more than ``max_turn_rad`` from the heading the chain's drift
+    predicts for it (:func:`heading_trend`: turned about the point where it meets the end, a
+    wrong match meets it too); it then becomes the end. One piece that does not join is
+    stepped over (a piece with too few walls, a stretch of clutter); the next is then measured
+    against the end at the middle of the stepped-over run, not where it starts (a route's drift
+    turns the two transforms apart over the run between them). Two in a row stop the growth.
     """
     out = list(pieces)
     chain = set(chain)
@@ -345,7 +352,7 @@ def grow_chain(
             # The chain's pieces in growth order, its end last.
             grown = [out[j] for j in sorted(chain, reverse=step < 0)]
             turn = abs(wrap_angle(piece.nav2_from_slam.theta - heading_trend(grown, i)))
-            if piece.trusted and gap <= agree_m and turn <= max_turn_rad:
+            if piece.aligned and gap <= agree_m and turn <= max_turn_rad:
                 out[i], end, over = piece, i, []
                 chain.add(i)
             else:
@@ -366,14 +373,14 @@ def _gap(a: Piece, b: Piece) -> float:
 
 
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
-    """The indices of the largest (by area) run of well-scoring pieces, in route order, each
-    within ``agree_m`` of the one before where they meet (pieces that do not score are skipped,
-    not breaks). A piece that found a wrong match jumps; drift does not: the pieces that agree
+    """The indices of the largest (by area) run of aligned pieces (``Piece.aligned``), in route
+    order, each within ``agree_m`` of the one before where they meet (pieces that did not align
+    are skipped, not breaks). A piece that found a wrong match jumps; drift does not: the pieces that agree
     with each other over most of the route are the right ones, whichever one the prior
     anchored."""
     chains: list[list[Piece]] = []
     for piece in pieces:
-        if not piece.trusted:
+        if not piece.aligned:
             continue
         if chains and _gap(chains[-1][-1], piece) <= agree_m:
             chains[-1].append(piece)
@@ -412,11 +419,9 @@ def lands_within(local: OccupancyMap, pieces: Pieces, grid: Grid, margin_m: floa
     return True
 
 
-def departure(
-    local: OccupancyMap, pieces: Pieces, transform: Transform2D, *, min_score: float = 0.6
-) -> float:
-    """How far, at most, a piece that aligned on its own (scored ``min_score``, in the chain
-    or left out of it) puts its own cells from where ``transform`` (one rigid fit of the whole
+def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> float:
+    """How far, at most, a piece that aligned on its own (``aligned``, in the chain or left
+    out of it) puts its own cells from where ``transform`` (one rigid fit of the whole
     local map) puts them, metres; 0 with no such piece. Over the corners of each piece's
     bounding box: the gap between two rigid transforms grows linearly across a region, so its
     largest is at a corner.
@@ -426,7 +431,7 @@ def departure(
     allows. Should it be a wrong match instead, aligning in pieces only leaves it out."""
     worst = 0.0
     for piece in pieces.pieces:
-        if piece.score < min_score:
+        if not piece.aligned:
             continue
         corners = _corners(local, piece)
         if corners is not None:
@@ -442,7 +447,6 @@ def another_pass_explains(
     *,
     reach_m: float = 12.0,
     min_gap_m: float = 0.5,
-    min_score: float = 0.6,
     share: float = 0.8,
     open_there: Callable[[FloatArray], NDArray[np.bool_]] | None = None,
     near_ratio: float = math.inf,
@@ -454,7 +458,7 @@ def another_pass_explains(
     the piece of the first pass (the run nearest through free space), whose transform puts
     the second pass's wall in open floor. Here the cells are taken back to the slam frame
     through the trusted piece most of them belong to, then put through the transform of every
-    other aligned piece (``min_score``, trusted or left out of the chain: a chain break leaves
+    other aligned piece (``aligned``, trusted or left out of the chain: a chain break leaves
     out pieces that are mostly right; not the piece's neighbours on the route, which meet it
     within the chain's agreement) whose run came within ``reach_m`` of them and that puts them
     ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
@@ -488,7 +492,7 @@ def another_pass_explains(
         own_m = float(np.hypot(*(owner.run - centre).T).min())
         limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
     for q in pieces.pieces:
-        if q.score < min_score or abs(q.index - owner.index) < 2 or len(q.run) < 2:
+        if not q.aligned or abs(q.index - owner.index) < 2 or len(q.run) < 2:
             continue
         if float(np.hypot(*(q.run - centre).T).min()) > limit_m:
             continue

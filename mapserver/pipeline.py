@@ -832,7 +832,6 @@ def _seen_on_another_pass(
         fits,
         reach_m=reach_m(),
         min_gap_m=_PASS_GAP_M,
-        min_score=config.pipeline.align.min_score,
         share=_PASS_SHARE,
         open_there=open_there,
         near_ratio=_PASS_NEAR_RATIO if diff.kind == "added" else math.inf,
@@ -1529,10 +1528,7 @@ def process_bundle(
         if (
             pieces is not None
             and pieces.trusted
-            and piecewise.departure(
-                local, pieces, alignment.nav2_from_slam, min_score=settings.align.min_score
-            )
-            >= _BEND_M
+            and piecewise.departure(local, pieces, alignment.nav2_from_slam) >= _BEND_M
         ):
             warped = stages.run("warp", partial(_warp_pieces, local, search_view, pieces, config))
             unfit = stages.run("fit", partial(_unfit, warped.local_state, warped.view, misfit_m))

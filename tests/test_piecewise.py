@@ -8,12 +8,14 @@ import math
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
 import yaml
 from worlds import changed, office
 
+from mapserver import align as align_stage
 from mapserver import piecewise, pipeline
 from mapserver.bundle import sha256_file
 from mapserver.config import Config
@@ -315,8 +317,8 @@ def test_departure_is_how_far_a_piece_moves_its_cells_from_the_whole_fit() -> No
     turned = _turn_about((10.0, 0.0), 3.0)  # the east piece turned about its east end
     pieces = piecewise.Pieces(
         (
-            piecewise.Piece(0, west, identity, 0.9, True, 50.0, (0.0, 2.5), _RUN),
-            piecewise.Piece(1, east, turned, 0.9, True, 50.0, (10.0, 2.5), _RUN),
+            piecewise.Piece(0, west, identity, 0.9, True, 50.0, (0.0, 2.5), _RUN, aligned=True),
+            piecewise.Piece(1, east, turned, 0.9, True, 50.0, (10.0, 2.5), _RUN, aligned=True),
         ),
         100.0,
     )
@@ -328,11 +330,16 @@ def test_departure_is_how_far_a_piece_moves_its_cells_from_the_whole_fit() -> No
     left_out = dataclasses.replace(pieces.pieces[1], trusted=False)
     with_left_out = piecewise.Pieces((pieces.pieces[0], left_out), 100.0)
     assert piecewise.departure(local, with_left_out, identity) == pytest.approx(expected, rel=0.02)
-    unaligned = dataclasses.replace(left_out, score=0.4)
+    unaligned = dataclasses.replace(left_out, score=0.4, aligned=False)
     assert (
         piecewise.departure(local, piecewise.Pieces((pieces.pieces[0], unaligned), 100.0), identity)
         == 0.0
     )
+    # One trusted on the structure that did not change scores under min_score, and aligned.
+    unchanged = dataclasses.replace(left_out, score=0.4)
+    assert piecewise.departure(
+        local, piecewise.Pieces((pieces.pieces[0], unchanged), 100.0), identity
+    ) == pytest.approx(expected, rel=0.02)
 
 
 def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
@@ -346,7 +353,9 @@ def test_the_reported_transform_carries_the_route_as_the_pieces_do() -> None:
     moves = [Transform2D(0.0, 0.0, 0.0), Transform2D(0.0, 0.0, 0.3), Transform2D(0.5, 5.0, 5.0)]
     pieces = piecewise.Pieces(
         tuple(
-            piecewise.Piece(i, mask, moves[i], 0.9, i < 2, 100.0, tuple(runs[i][0]), runs[i])
+            piecewise.Piece(
+                i, mask, moves[i], 0.9, i < 2, 100.0, tuple(runs[i][0]), runs[i], aligned=i < 2
+            )
             for i in range(3)
         ),
         300.0,
@@ -377,7 +386,15 @@ def test_the_route_is_drawn_where_each_piece_carries_its_run() -> None:
     pieces = piecewise.Pieces(
         tuple(
             piecewise.Piece(
-                i, mask, moves.get(i, wrong), 0.9, i in moves, 50.0, (10.0 * i, 0.0), runs[i]
+                i,
+                mask,
+                moves.get(i, wrong),
+                0.9,
+                i in moves,
+                50.0,
+                (10.0 * i, 0.0),
+                runs[i],
+                aligned=i in moves,
             )
             for i in range(4)
         ),
@@ -405,7 +422,15 @@ def _piece(index: int, dx: float, score_ok: bool = True, area: float = 100.0) ->
     """Piece ``index`` of a straight route east along y = 0 (20 m each), moved ``dx`` east."""
     mask = np.zeros((2, 2), bool)
     return piecewise.Piece(
-        index, mask, Transform2D(0.0, dx, 0.0), 0.9, score_ok, area, (20.0 * index, 0.0), _RUN
+        index,
+        mask,
+        Transform2D(0.0, dx, 0.0),
+        0.9 if score_ok else 0.3,
+        score_ok,
+        area,
+        (20.0 * index, 0.0),
+        _RUN,
+        aligned=score_ok,
     )
 
 
@@ -430,7 +455,7 @@ def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
     run = np.array([[20.0 * i, 0.0], [20.0 * i + 10.0, 0.0], [20.0 * i + 20.0, 0.0]])
     mask = np.zeros((2, 2), bool)
     return piecewise.Piece(
-        i, mask, t, 0.9 if trusted else 0.3, trusted, 100.0, (20.0 * i, 0.0), run
+        i, mask, t, 0.9 if trusted else 0.3, trusted, 100.0, (20.0 * i, 0.0), run, aligned=trusted
     )
 
 
@@ -544,14 +569,15 @@ def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
     local = from_states(np.full((40, 60), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     mask = np.zeros((40, 60), bool)
     mask[10:30, 10:50] = True  # x 1..5 m, y 1..3 m
-    piece = piecewise.Piece(0, mask, Transform2D(0.0, 0.0, 0.0), 0.9, True, 8.0, (0.0, 0.0), _RUN)
+    identity = Transform2D(0.0, 0.0, 0.0)
+    piece = piecewise.Piece(0, mask, identity, 0.9, True, 8.0, (0.0, 0.0), _RUN, aligned=True)
     view = Grid(-3.0, -3.0, 0.1, 120, 100)  # x -3..9 m, y -3..7 m: 4 m to spare all round
     assert piecewise.lands_within(local, piecewise.Pieces((piece,), 8.0), view, 2.0)
     assert not piecewise.lands_within(local, piecewise.Pieces((piece,), 8.0), view, 4.5)
     moved = dataclasses.replace(piece, nav2_from_slam=Transform2D(0.0, 3.5, 0.0))  # 0.5 m east
     assert not piecewise.lands_within(local, piecewise.Pieces((moved,), 8.0), view, 2.0)
     # A piece never aligned (too few walls: no score) is not asked where it lands.
-    idle = dataclasses.replace(moved, score=0.0)
+    idle = dataclasses.replace(moved, score=0.0, trusted=False, aligned=False)
     assert piecewise.lands_within(local, piecewise.Pieces((idle,), 8.0), view, 2.0)
 
 
@@ -564,9 +590,19 @@ def test_compose_keeps_only_trusted_pieces_and_marks_the_rest_left_out() -> None
     identity = Transform2D(0.0, 0.0, 0.0)
     pieces = piecewise.Pieces(
         (
-            piecewise.Piece(0, mask_a & (state != UNKNOWN), identity, 0.9, True, 5.0, (0, 0), _RUN),
             piecewise.Piece(
-                1, ~mask_a & (state != UNKNOWN), identity, 0.3, False, 5.0, (3, 0), _RUN
+                0, mask_a & (state != UNKNOWN), identity, 0.9, True, 5.0, (0, 0), _RUN, aligned=True
+            ),
+            piecewise.Piece(
+                1,
+                ~mask_a & (state != UNKNOWN),
+                identity,
+                0.3,
+                False,
+                5.0,
+                (3, 0),
+                _RUN,
+                aligned=False,
             ),
         ),
         10.0,
@@ -620,6 +656,30 @@ def test_pieces_start_from_the_whole_map_s_fit_when_the_prior_is_off(tmp_path: P
     assert a["trusted"] is True and a["pieces"] == 2 and a["trusted_pieces"] >= 1, a
     for box in BOXES[a["pieces"] - a["trusted_pieces"] :]:
         assert len(_near(r["differences"], box)) == 1, r["differences"]
+
+
+def test_a_piece_starts_from_the_fit_it_can_trust_not_the_one_that_scores_more(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One piece aligned from two starts: from the prior, a fit scoring 0.58 and not trusted;
+    from the whole map's fit, one scoring 0.5 trusted on the structure that did not change.
+    The piece keeps the trusted one (it kept the higher score)."""
+    state = np.full((60, 200), FREE, np.uint8)  # a 20 m x 6 m corridor at 0.1 m
+    state[[0, -1], :] = OCCUPIED
+    local = from_states(state, 0.1, (0.0, 0.0, 0.0))
+    prior, whole = Transform2D(0.0, 0.0, 0.0), Transform2D(0.0, 0.3, 0.0)
+    fits = {
+        prior: align_stage.Alignment(prior, "pose+correlative+icp", True, 0.58, 0.58, False),
+        whole: align_stage.Alignment(whole, "pose+correlative+icp", True, 0.5, 0.2, True, (), 0.9),
+    }
+    monkeypatch.setattr(piecewise.align_stage, "align", lambda sub, view, t0, **kw: fits[t0])
+    route = np.array([[1.0, 3.0], [19.0, 3.0]])
+    view = cast(align_stage.GlobalView, None)  # the faked alignment never reads it
+    got = piecewise.align_pieces(local, view, route, prior, also_from=whole, piece_m=20.0)
+    assert got is not None and len(got.pieces) == 1
+    (piece,) = got.pieces
+    assert piece.nav2_from_slam == whole and piece.score == 0.5
+    assert piece.aligned and piece.trusted
 
 
 def _recorded(monkeypatch: pytest.MonkeyPatch, name: str, angle: str) -> list[float]:
@@ -708,7 +768,8 @@ def _fold_pieces(
     west[:, :100] = True
     run = np.column_stack([np.linspace(0.0, 10.0, 101), np.full(101, run_y)])
     other_run = np.array([[other_run_x[0], 5.0], [other_run_x[1], 5.0]])
-    first = piecewise.Piece(0, west, Transform2D(0.0, 0.0, 0.0), 0.9, True, 50.0, (0.0, 5.0), run)
+    identity = Transform2D(0.0, 0.0, 0.0)
+    first = piecewise.Piece(0, west, identity, 0.9, True, 50.0, (0.0, 5.0), run, aligned=True)
     other = piecewise.Piece(
         other_index,
         ~west,
@@ -718,6 +779,7 @@ def _fold_pieces(
         50.0,
         (other_run_x[0], 5.0),
         other_run,
+        aligned=other_score >= 0.6,
     )
     return local, piecewise.Pieces((first, other), 100.0)
 
@@ -744,9 +806,13 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     # Two passes that put it only 0.3 m apart: the re-fit's business, not a fold.
     near = _fold_pieces(other_shift_m=0.3)
     assert not piecewise.another_pass_explains(*near, xy, _wall_at_y(5.3))
-    # A pass that did not align (under min_score) gives no transform to trust.
-    weak = _fold_pieces(other_score=0.4)
-    assert not piecewise.another_pass_explains(*weak, xy, _wall_at_y(6.0))
+    # A pass that did not align (under min_score) gives no transform to trust; one trusted on
+    # the structure that did not change, under min_score too, does.
+    local, weak = _fold_pieces(other_score=0.4)
+    assert not piecewise.another_pass_explains(local, weak, xy, _wall_at_y(6.0))
+    first, other = weak.pieces
+    unchanged = piecewise.Pieces((first, dataclasses.replace(other, aligned=True)), 100.0)
+    assert piecewise.another_pass_explains(local, unchanged, xy, _wall_at_y(6.0))
 
 
 def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() -> None:

@@ -438,6 +438,7 @@ def _refit_in_pieces(
                 50.0,
                 (0.0, 5.0),
                 np.array([[own_run_x[0], 5.0], [own_run_x[1], 5.0]]),
+                aligned=True,
             ),
             piecewise.Piece(
                 2,
@@ -448,6 +449,7 @@ def _refit_in_pieces(
                 50.0,
                 (other_run_x[0], 5.0),
                 np.array([[other_run_x[0], 5.0], [other_run_x[1], 5.0]]),
+                aligned=True,
             ),
         ),
         100.0,
