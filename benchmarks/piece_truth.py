@@ -141,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
             error = np.hypot(*(piece.nav2_from_slam.apply(est[at, :2]) - route[at]).T)
             print(
                 f"  piece {piece.index:2d} score {piece.score:.3f} "
-                f"{'trusted' if piece.trusted else 'left out'} area {piece.area_m2:6.1f} m2 "
+                f"{'trusted' if piece.trusted else 'left out'} "
+                f"{'aligned' if piece.aligned else 'unaligned'} area {piece.area_m2:6.1f} m2 "
                 f"error max {error.max():.3f} mean {error.mean():.3f} m"
             )
     return 0

@@ -218,11 +218,11 @@ def align_pieces(
     score: the whole map's alignment, for a prior that is off).
 
     The trusted pieces are the largest (by area) chain of aligned pieces that agree with each
-    other: where each meets the one before it in the chain, the two
-    transforms put that point within ``agree_m`` of each other. A piece that found a wrong
-    match jumps; drift does not. Not the chain that holds the last piece: when the prior is
-    off and the last piece took a wrong match (repeated rooms), the rest of the route,
-    consistent with itself, was left out with it. The chain then grows outwards with the
+    other: where each meets the one before it in the chain, the two transforms put that point
+    within ``agree_m`` of each other. A piece that found a wrong match jumps; drift does not.
+    Not the chain that holds the last piece: when the prior is off and the last piece took a
+    wrong match (repeated rooms), the rest of the route, consistent with itself, was left out
+    with it. The chain then grows outwards with the
     pieces beyond it aligned again from its ends (:func:`grow_chain`). ``view`` must cover
     where the pieces land.
 
@@ -375,9 +375,9 @@ def _gap(a: Piece, b: Piece) -> float:
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     """The indices of the largest (by area) run of aligned pieces (``Piece.aligned``), in route
     order, each within ``agree_m`` of the one before where they meet (pieces that did not align
-    are skipped, not breaks). A piece that found a wrong match jumps; drift does not: the pieces that agree
-    with each other over most of the route are the right ones, whichever one the prior
-    anchored."""
+    are skipped, not breaks). A piece that found a wrong match jumps; drift does not: the
+    pieces that agree with each other over most of the route are the right ones, whichever one
+    the prior anchored."""
     chains: list[list[Piece]] = []
     for piece in pieces:
         if not piece.aligned:
@@ -403,7 +403,8 @@ def _corners(local: OccupancyMap, piece: Piece) -> FloatArray | None:
 
 
 def lands_within(local: OccupancyMap, pieces: Pieces, grid: Grid, margin_m: float) -> bool:
-    """Whether every aligned piece (one that scored at all) lands on ``grid`` through its own
+    """Whether every piece that was searched (one that scored at all, aligned or not: one may
+    fail to align because its search ran off the view) lands on ``grid`` through its own
     transform with ``margin_m`` to spare on every side: the view it was searched on held it and
     the room around it. Over the corners of each piece's bounding box."""
     margin_px = margin_m / grid.resolution

@@ -267,7 +267,8 @@ def _align_in_pieces(
     whole map's fit, for a prior that is off).
 
     ``confirm_prior``: None too unless the last piece, aligned first, confirms the prior: it
-    scores, and puts the robot within ``jump_m`` of where the prior does.
+    aligns on its own (``Piece.aligned``), and puts the robot within ``jump_m`` of where the
+    prior does.
     """
     a = config.pipeline.align
     files, local, route = inputs.files, inputs.local, inputs.route_slam
@@ -283,7 +284,7 @@ def _align_in_pieces(
 
     def holds(last: piecewise.Piece) -> bool:
         apart = piecewise.apart(last.nav2_from_slam, prior, at_robot)
-        return last.trusted and bool(apart[0] <= a.jump_m)
+        return last.aligned and bool(apart[0] <= a.jump_m)
 
     return piecewise.align_pieces(
         local,

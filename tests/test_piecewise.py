@@ -576,8 +576,11 @@ def test_a_piece_lands_within_a_view_only_with_the_room_to_spare() -> None:
     assert not piecewise.lands_within(local, piecewise.Pieces((piece,), 8.0), view, 4.5)
     moved = dataclasses.replace(piece, nav2_from_slam=Transform2D(0.0, 3.5, 0.0))  # 0.5 m east
     assert not piecewise.lands_within(local, piecewise.Pieces((moved,), 8.0), view, 2.0)
-    # A piece never aligned (too few walls: no score) is not asked where it lands.
-    idle = dataclasses.replace(moved, score=0.0, trusted=False, aligned=False)
+    # One searched that did not align (its search may have run off the view) is asked; one
+    # never searched (too few walls: no score) is not.
+    unaligned = dataclasses.replace(moved, score=0.4, trusted=False, aligned=False)
+    assert not piecewise.lands_within(local, piecewise.Pieces((unaligned,), 8.0), view, 2.0)
+    idle = dataclasses.replace(unaligned, score=0.0)
     assert piecewise.lands_within(local, piecewise.Pieces((idle,), 8.0), view, 2.0)
 
 
@@ -663,7 +666,7 @@ def test_a_piece_starts_from_the_fit_it_can_trust_not_the_one_that_scores_more(
 ) -> None:
     """One piece aligned from two starts: from the prior, a fit scoring 0.58 and not trusted;
     from the whole map's fit, one scoring 0.5 trusted on the structure that did not change.
-    The piece keeps the trusted one (it kept the higher score)."""
+    The piece keeps the trusted one (before, it kept the one that scored more)."""
     state = np.full((60, 200), FREE, np.uint8)  # a 20 m x 6 m corridor at 0.1 m
     state[[0, -1], :] = OCCUPIED
     local = from_states(state, 0.1, (0.0, 0.0, 0.0))
@@ -760,8 +763,9 @@ def _fold_pieces(
     run_y: float = 5.0,
 ) -> tuple[OccupancyMap, piecewise.Pieces]:
     """A 20 m x 10 m local map at 0.1 m: the west half one trusted piece (identity, its run
-    along y = ``run_y``), and another aligned piece whose transform puts everything
-    ``other_shift_m`` north, its run along y = 5 over ``other_run_x``."""
+    along y = ``run_y``), and another piece (aligned when ``other_score`` is 0.6 or more) whose
+    transform puts everything ``other_shift_m`` north, its run along y = 5 over
+    ``other_run_x``."""
     state = np.full((100, 200), FREE, np.uint8)
     local = from_states(state, 0.1, (0.0, 0.0, 0.0))
     west = np.zeros(state.shape, bool)
