@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
-from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
+from mapserver.grid import Grid, box_around, box_of_cells, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, PGM_UNKNOWN, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -57,12 +57,34 @@ class GlobalView:
         Cached per tolerance."""
         cache: dict[float, NDArray[np.bool_]] = self.__dict__.setdefault("_near", {})
         if tolerance_m not in cache:
-            res = self.grid.resolution
-            # The float32 chamfer distance, in float64, times the resolution: as thresholding
-            # the distance transform of the walls would read it.
-            reach = offset_distances(tolerance_m / res).astype(np.float64)
-            cache[tolerance_m] = near(self.structure, ~(reach * res > tolerance_m))
+            cache[tolerance_m] = near(self.structure, self._within(tolerance_m))
         return cache[tolerance_m]
+
+    def near_walls_at(self, points_xy: FloatArray, distance_m: float) -> NDArray[np.bool_]:
+        """(N,) bool: whether each of ``points_xy`` (nav2 metres) lies within ``distance_m``
+        of a global wall, as ``near_walls(distance_m)`` sampled there (False off the grid),
+        worked out over the box around the points only: for a distance asked once, at a few
+        thousand points, not a pass over the whole view."""
+        px = np.rint(self.grid.to_pixel(points_xy)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < self.grid.width)
+        inside &= (px[:, 1] >= 0) & (px[:, 1] < self.grid.height)
+        out = np.zeros(len(px), bool)
+        if not inside.any():
+            return out
+        cols, rows = px[inside, 0], px[inside, 1]
+        within = self._within(distance_m)
+        box = box_of_cells(rows, cols, within.shape[0] // 2, self.structure.shape)
+        part = near(self.structure[box], within)
+        out[inside] = part[rows - box[0].start, cols - box[1].start]
+        return out
+
+    def _within(self, distance_m: float) -> NDArray[np.bool_]:
+        """The offsets within ``distance_m`` of a cell (for :func:`~mapserver.diff.near`): the
+        float32 chamfer distance, in float64, times the resolution, as thresholding the
+        distance transform of the walls would read it."""
+        res = self.grid.resolution
+        reach = offset_distances(distance_m / res).astype(np.float64)
+        return np.asarray(~(reach * res > distance_m))
 
     def nearest_wall_near(self, points_xy: FloatArray, *, reach_m: float) -> NearestWall:
         """The (col, row) of the nearest global wall cell (a :class:`NearestWall`), computed
@@ -623,7 +645,7 @@ def unchanged_score(
         return 0.0
     on_slam = nav2_from_slam.apply(walls_slam)
     on = view.grid.sample(view.near_walls(tolerance_m), on_slam, False)
-    near_structure = view.grid.sample(view.near_walls(_NEAR_STRUCTURE_M), on_slam, False)
+    near_structure = view.near_walls_at(on_slam, _NEAR_STRUCTURE_M)
     checked = int(np.count_nonzero(near_structure))
     if checked < 20 or checked < _MIN_NEAR_SHARE * len(walls_slam):
         return 0.0

@@ -355,6 +355,22 @@ def test_near_walls_is_the_thresholded_distance_field(seed: int, tolerance_m: fl
     assert np.array_equal(view.near_walls(tolerance_m), expected)
 
 
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("distance_m", [0.15, 1.0])
+def test_near_walls_at_points_is_the_whole_view_sampled(seed: int, distance_m: float) -> None:
+    """Worked out in the box around the points, the same as the whole view's mask sampled
+    there: points clustered in a corner, at the edges and off the grid."""
+    rng = np.random.default_rng(seed)
+    grid = Grid(-1.0, 2.0, 0.05, 130, 110)
+    structure = _walls(seed, grid.shape, 0.01)
+    view = GlobalView(grid, np.full(grid.shape, FREE, np.uint8), structure)
+    corner = rng.uniform([-1.5, 1.5], [1.5, 4.0], (300, 2))  # a corner, part off the grid
+    spread = rng.uniform([-1.2, 1.8], [5.7, 7.7], (300, 2))  # the whole grid and its edges
+    for points in (corner, spread, corner[:0]):
+        expected = grid.sample(view.near_walls(distance_m), points, False)
+        assert np.array_equal(view.near_walls_at(points, distance_m), expected)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_observed_roi_outline_on_the_box_is_the_whole_grid_one(seed: int) -> None:
     rng = np.random.default_rng(seed)
