@@ -222,9 +222,8 @@ def align_pieces(
     within ``agree_m`` of each other. A piece that found a wrong match jumps; drift does not.
     Not the chain that holds the last piece: when the prior is off and the last piece took a
     wrong match (repeated rooms), the rest of the route, consistent with itself, was left out
-    with it. The chain then grows outwards with the
-    pieces beyond it aligned again from its ends (:func:`grow_chain`). ``view`` must cover
-    where the pieces land.
+    with it. The chain then grows outwards with the pieces beyond it aligned again from its
+    ends (:func:`grow_chain`). ``view`` must cover where the pieces land.
 
     With ``anchored``, the last piece (aligned first) must satisfy it, else None: nothing more
     is aligned.
@@ -269,8 +268,9 @@ def align_pieces(
             # A fit trusted on what did not change beats an untrusted one that scores more.
             key=lambda r: (r.trusted, r.score),
         )
+        # Compared or not, the chain decides below.
         t, ok = result.nav2_from_slam, result.trusted
-        return Piece(i, mask, t, result.score, ok, area, junction, runs[i], aligned=ok)
+        return Piece(i, mask, t, result.score, False, area, junction, runs[i], aligned=ok)
 
     for i in reversed(range(len(runs))):
         starts = [prior] if from_piece or also_from is None else [prior, also_from]
