@@ -26,6 +26,7 @@ from worlds import (
 
 from mapserver import diff as diff_stage
 from mapserver import pipeline, synth
+from mapserver.align import make_view
 from mapserver.config import Config, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
@@ -364,8 +365,6 @@ def test_the_drift_estimate_works_on_the_mean_of_each_block_of_wall_points(
     sat half a cell off a thick wall's middle, and the shifts carried it); its coarser passes
     thin those means further, by their first, as a search does (a mean over a coarse cell that
     holds a corner lies off the walls)."""
-    from mapserver.align import make_view
-
     truth = Transform2D(0.7, 5.0, -3.0)
     world = office(seed=3)
     cut = cut_local(world, centre_xy=(12.0, 6.0), radius_m=8.0, nav2_from_slam=truth)
