@@ -236,6 +236,18 @@ def floor_seen_share(
     return float(np.count_nonzero(local_state[box][floor] == FREE)) / np.count_nonzero(floor)
 
 
+def spread_across_m(cells: NDArray[np.intp], resolution: float) -> float:
+    """How far ``cells`` ((N, 2) row, col) spread across the direction they run along: the
+    standard deviation of the cells' centres in the direction they spread least (the smaller
+    principal axis), metres. A straight line one cell wide spreads 0 to 0.3 cells (0 along a
+    grid axis, a staircase when slanted), two cells wide half a cell; an object drawn with a
+    depth of its own, or a corner, spreads more. 0.0 for fewer than two cells."""
+    if len(cells) < 2:
+        return 0.0
+    covariance = np.cov(cells.astype(np.float64).T)
+    return math.sqrt(max(float(np.linalg.eigvalsh(covariance)[0]), 0.0)) * resolution
+
+
 @dataclass(frozen=True)
 class Faces:
     """The local walls around a removed difference: ``walls`` of them within reach, of which

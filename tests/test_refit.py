@@ -17,6 +17,7 @@ from mapserver.refit import (
     faces_seen_from_behind,
     floor_seen_share,
     ghost_of_wall,
+    spread_across_m,
 )
 
 if TYPE_CHECKING:
@@ -385,6 +386,30 @@ def test_the_fold_asks_more_of_the_faces_the_shallower_it_lies(
     from mapserver import pipeline
 
     assert pipeline._folded(Faces(walls, seen_behind, depth_m), 0.05) is fold
+
+
+def test_a_line_spreads_less_across_itself_than_a_block_or_a_corner() -> None:
+    def spread(mask: np.ndarray) -> float:
+        return spread_across_m(cells(mask), RES)
+
+    grid = np.zeros((40, 40), bool)
+    along = grid.copy()
+    along[10, 5:35] = True  # one cell wide, along a grid axis
+    assert spread(along) == pytest.approx(0.0)
+    slanted = grid.copy()
+    for i in range(30):
+        slanted[5 + round(i * 0.4), 5 + i] = True  # 22 degrees: a staircase
+    assert 0.0 < spread(slanted) < 0.3 * RES
+    two = grid.copy()
+    two[10:12, 5:35] = True  # two cells wide: half a cell
+    assert spread(two) == pytest.approx(np.std(np.repeat([0, 1], 30), ddof=1) * RES)
+    block = grid.copy()
+    block[10:20, 10:20] = True  # 0.5 m x 0.5 m: the spread of rows 0..9, either way
+    assert spread(block) == pytest.approx(np.std(np.repeat(np.arange(10), 10), ddof=1) * RES)
+    corner = grid.copy()
+    corner[10, 10:30] = corner[10:30, 10] = True  # an L of 1 m arms: a box seen from a corner
+    assert spread(corner) > 0.1
+    assert spread_across_m(np.array([[3, 4]]), RES) == 0.0
 
 
 def _refit_in_pieces(
