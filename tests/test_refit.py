@@ -420,10 +420,14 @@ def _refit_in_pieces(
     wall_beside: bool = False,
     seen_north_m: float = 0.0,
     own_run_x: tuple[float, float] = (0.0, 10.0),
+    added_rows: tuple[int, int] = (49, 51),
+    wall_rows: tuple[int, int] = (39, 41),
 ) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
-    for the added kind, none for the removed), of the west piece (identity). The other piece
+    for the added kind, none for the removed), of the west piece (identity). An added one
+    holds rows ``added_rows`` (y 4.9..5.1 by default; row r is y = 10 - (r + 0.5) * 0.1), the
+    wall rows ``wall_rows``. The other piece
     (third on the route) puts everything 1 m north; its run lies along y = 5 m over
     ``other_run_x``. ``other_drew``: the local map's state where that pass would have drawn
     the block (1 m south, y 4 m in the slam frame): OCCUPIED, it saw it standing; FREE, it saw
@@ -441,7 +445,7 @@ def _refit_in_pieces(
     glob[48:52, 70:90] = OCCUPIED  # the block, y 4.8..5.2
     if kind == "added":
         glob[48:52, 70:90] = FREE
-        glob[39:41, :] = OCCUPIED  # the wall, y 5.9..6.1
+        glob[slice(*wall_rows), :] = OCCUPIED  # the wall, by default y 5.9..6.1
     drawn = np.full((100, 200), FREE, np.uint8)
     drawn[58:62, 70:90] = other_drew  # y 3.8..4.2
     if wall_beside:
@@ -480,10 +484,10 @@ def _refit_in_pieces(
         100.0,
     )
     state = np.full(glob.shape, FREE, np.uint8)
-    if kind == "added":
-        state[49:51, 75:85] = OCCUPIED
     where = np.zeros(glob.shape, bool)
-    where[49:51, 75:85] = True
+    where[slice(*added_rows) if kind == "added" else slice(49, 51), 75:85] = True
+    if kind == "added":
+        state[where] = OCCUPIED
     found = Difference(kind, (8.0, 5.0), (7.5, 4.9, 8.5, 5.1), 0.2, 20, cells(where))
     return _refit(found, glob, state, res, local, pieces, in_pieces=True)
 
@@ -524,6 +528,20 @@ def test_an_obstacle_the_robot_saw_from_near_is_not_a_far_pass_fold(kind: str, s
     # That pass 11 m off (x from 19 m), more than four times 2 m but within half the 24.9 m
     # reach: it saw the place as well.
     assert _refit_in_pieces(kind, (19.0, 30.0), seen_north_m=20.0, own_run_x=own) == []
+
+
+def test_a_pass_lays_a_line_on_a_wall_looser_than_an_obstacle_with_a_depth() -> None:
+    """The other pass's transform lays the added cells 0.2-0.3 m from the wall (it stands at
+    y 6.2..6.3 m, row 37). A line of them (y 4.9..5.0, landing 0.3 m off) is that pass's wall
+    with the drift of its piece left in: a fold. A block 0.4 m deep (y 4.9..5.3, landing 0-0.3
+    m off, half of it beyond the 0.15 m tolerance, one cell at 0.1 m) is not what a pass draws
+    of a wall, and laid that near one only by coincidence: it stays."""
+    line = _refit_in_pieces("added", (10.0, 20.0), added_rows=(50, 51), wall_rows=(37, 38))
+    assert line == []
+    block = _refit_in_pieces("added", (10.0, 20.0), added_rows=(47, 51), wall_rows=(37, 38))
+    assert len(block) == 1
+    # The same block laid within the tolerance (a wall y 6.0..6.2 m, rows 38-39) is a fold.
+    assert _refit_in_pieces("added", (10.0, 20.0), added_rows=(47, 51), wall_rows=(38, 40)) == []
 
 
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
