@@ -650,19 +650,22 @@ _PASS_SHARE = 0.8
 # sets), down on 3 by 0.002-0.005, the rest as before. Not for a removed one: its free cells
 # are drawn by rays crossing from afar, and there the census was 3 real against 10 others.
 _PASS_NEAR_RATIO = 4.0
-# What another pass drew is a line: a wall's face, where its rays ended. Through that pass's
-# transform it lands on a global wall within twice the differences' tolerance (the drift left
-# in its piece). A real obstacle beside a wall is laid there too by some other pass's
-# transform, by coincidence, and a box, a column or a corner spreads across its main direction
-# where a line does not: an added difference whose cells spread _FOLD_LINE_SPREAD_M or more
-# across it (refit.spread_across_m) is that pass's drawing only when it lands within the
-# tolerance itself. Census over 54 generated sets (session 21; the explaining passes logged
-# with each difference's truth, see its closing note): of the added differences a pass
-# explained, 32 real and 293 others; 21 of the real ones and 7 others spread that far and
-# landed looser than the tolerance (a tolerance of 0.15 m for every added one instead: 22 and
-# 18). Benchmark over those sets and public, public-realism: 20 more changes found for 5 more
-# false positives, F1 up on 14 sets, down on 3 by 0.004-0.006.
+# What another pass drew of the building is mostly a line: a wall's face, where its rays
+# ended. Through that pass's transform it lands on a global wall within twice the differences'
+# tolerance (the drift left in its piece). A real obstacle beside a wall is laid there too by
+# some other pass's transform, by coincidence, and a box, a column or a corner spreads across
+# its main direction where a line does not: an added difference whose cells spread
+# _FOLD_LINE_SPREAD_M or more across it (refit.spread_across_m; and more than a line two cells
+# wide spreads, _FOLD_LINE_CELLS, on a coarse grid) is that pass's drawing only when it lands
+# within the tolerance itself (a corner that pass drew must too). Census over 54 generated sets
+# (session 21; the explaining passes logged with each difference's truth, see issue 12's
+# closing note): of the added differences a pass explained, 32 real and 293 others; 21 of the
+# real ones and 7 others spread that far and landed looser than the tolerance (a tolerance of
+# 0.15 m for every added one instead: 22 and 18). Benchmark over those sets and public,
+# public-realism: 20 more changes found for 5 more false positives, F1 up on 14 sets, down on 3
+# by 0.004-0.006.
 _FOLD_LINE_SPREAD_M = 0.05
+_FOLD_LINE_CELLS = 0.6
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
 # building's structure (a wall or block 0.8 m thick or more), most of whose bounding local
 # walls (_FOLD_BEHIND_SHARE of at least _FOLD_MIN_WALL_M of wall cells, counted as cells times
@@ -742,8 +745,8 @@ def _refit(
 
     @cache
     def near_wall(distance_m: float) -> np.ndarray:
-        """Within ``distance_m`` of a global wall (built on first use: most bundles never
-        ask)."""
+        """Within ``distance_m`` of a global wall, rounded to whole cells (built on first use
+        for each distance: most bundles never ask)."""
         r = max(1, round(distance_m / grid.resolution))
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
@@ -820,10 +823,12 @@ def _seen_on_another_pass(
 ) -> bool:
     """Whether another pass of a route aligned in pieces, its run within ``reach_m()`` of
     them (the sensor's), saw ``diff``'s cells as no change: an added one's on a global wall
-    (``near_wall()``; that pass, past half the reach, no more than ``_PASS_NEAR_RATIO`` times
-    as far from them as the robot's own run), a removed one's on the open floor (free, off
-    every wall) unless that pass drew the structure's place open too (:func:`_open_in`: both
-    passes saw it gone)."""
+    (``near_wall(distance)``: within twice the differences' tolerance for a line, within the
+    tolerance for one that spreads across itself, ``_FOLD_LINE_SPREAD_M``; that pass, past
+    half the reach, no more than ``_PASS_NEAR_RATIO`` times as far from them as the robot's
+    own run), a removed one's on the open floor (free, off every wall by twice the tolerance)
+    unless that pass drew the structure's place open too (:func:`_open_in`: both passes saw it
+    gone)."""
     assert diff.cells is not None
     if aligned.pieces is None:
         return False
@@ -833,10 +838,9 @@ def _seen_on_another_pass(
     # A pass's wall lands within twice the differences' tolerance (the drift left in its
     # piece); an added difference with a depth of its own, not a line, within the tolerance.
     landing_m = 2 * tolerance_m
-    if (
-        diff.kind == "added"
-        and refit_stage.spread_across_m(diff.cells, grid.resolution) >= _FOLD_LINE_SPREAD_M
-    ):
+    line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
+    spread_m = refit_stage.spread_across_m(diff.cells, resolution=grid.resolution)
+    if diff.kind == "added" and spread_m >= line_m:
         landing_m = tolerance_m
 
     def fits(xy: np.ndarray) -> np.ndarray:

@@ -236,12 +236,14 @@ def floor_seen_share(
     return float(np.count_nonzero(local_state[box][floor] == FREE)) / np.count_nonzero(floor)
 
 
-def spread_across_m(cells: NDArray[np.intp], resolution: float) -> float:
+def spread_across_m(cells: NDArray[np.intp], *, resolution: float) -> float:
     """How far ``cells`` ((N, 2) row, col) spread across the direction they run along: the
     standard deviation of the cells' centres in the direction they spread least (the smaller
-    principal axis), metres. A straight line one cell wide spreads 0 to 0.3 cells (0 along a
-    grid axis, a staircase when slanted), two cells wide half a cell; an object drawn with a
-    depth of its own, or a corner, spreads more. 0.0 for fewer than two cells."""
+    principal axis), metres. A straight line one cell wide spreads under half a cell (0 along
+    a grid axis, up to about 0.45 cells as a slanted staircase), two cells wide about half a
+    cell; an object drawn with a depth of its own, or a corner, spreads more. 0.0 for fewer
+    than two cells. (``ghost_of_wall`` measures a line's width its own way: the range across
+    it, for a wall's copy up to ``max_width_m`` wide.)"""
     if len(cells) < 2:
         return 0.0
     covariance = np.cov(cells.astype(np.float64).T)
