@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.diff import distance_to, near, offset_distances
+from mapserver.diff import distance_to, near, near_at, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
-from mapserver.grid import Grid, box_around, box_of_cells, landing_box, nonzero_cells, resample
+from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
 from mapserver.maps import FREE, OCCUPIED, PGM_UNKNOWN, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -65,18 +65,7 @@ class GlobalView:
         of a global wall, as ``near_walls(distance_m)`` sampled there (False off the grid),
         worked out over the box around the points only: for a distance asked once, at a few
         thousand points, not a pass over the whole view."""
-        px = np.rint(self.grid.to_pixel(points_xy)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < self.grid.width)
-        inside &= (px[:, 1] >= 0) & (px[:, 1] < self.grid.height)
-        out = np.zeros(len(px), bool)
-        if not inside.any():
-            return out
-        cols, rows = px[inside, 0], px[inside, 1]
-        within = self._within(distance_m)
-        box = box_of_cells(rows, cols, within.shape[0] // 2, self.structure.shape)
-        part = near(self.structure[box], within)
-        out[inside] = part[rows - box[0].start, cols - box[1].start]
-        return out
+        return near_at(self.structure, self._within(distance_m), self.grid, points_xy)
 
     def _within(self, distance_m: float) -> NDArray[np.bool_]:
         """The offsets within ``distance_m`` of a cell (for :func:`~mapserver.diff.near`): the

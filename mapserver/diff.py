@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import RouteDistance, box_around, grown, nonzero_cells
+from mapserver.grid import Grid, RouteDistance, box_around, box_of_cells, grown, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -74,6 +74,27 @@ def near(mask: BoolArray, offsets: BoolArray) -> BoolArray:
         borderValue=0,
     )
     return grown > 0
+
+
+def near_at(
+    mask: BoolArray, offsets: BoolArray, grid: Grid, points_xy: NDArray[np.float64]
+) -> BoolArray:
+    """``grid.sample(near(mask, offsets), points_xy, False)``: for each world point of
+    ``points_xy`` (N, 2), whether its cell of ``grid`` (``mask``'s) has a True cell of
+    ``mask`` at one of ``offsets`` from it, False off the grid; worked out over the box around
+    the points only, not a pass over the whole mask (a check that asks at a few places of a
+    map hundreds of metres across)."""
+    px = np.rint(grid.to_pixel(points_xy)).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < grid.width)
+    inside &= (px[:, 1] >= 0) & (px[:, 1] < grid.height)
+    out = np.zeros(len(px), bool)
+    if not inside.any():
+        return out
+    cols, rows = px[inside, 0], px[inside, 1]
+    box = box_of_cells(rows, cols, offsets.shape[0] // 2, mask.shape)
+    part = near(mask[box], offsets)
+    out[inside] = part[rows - box[0].start, cols - box[1].start]
+    return out
 
 
 def raw_differences(

@@ -743,13 +743,12 @@ def _refit(
     global_walls = view.structure | (view.state == OCCUPIED)
     local_walls = local_state == OCCUPIED
 
-    @cache
-    def near_wall(distance_m: float) -> np.ndarray:
-        """Within ``distance_m`` of a global wall, rounded to whole cells (built on first use
-        for each distance: most bundles never ask)."""
+    def near_wall(xy: np.ndarray, distance_m: float) -> np.ndarray:
+        """Per nav2 point of ``xy`` (N, 2): within ``distance_m`` of a global wall, rounded to
+        whole cells (worked out around the points only: a fold check asks at a few places)."""
         r = max(1, round(distance_m / grid.resolution))
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        return np.asarray(cv2.dilate(global_walls.view(np.uint8), disk).view(bool))
+        return diff_stage.near_at(global_walls, disk.astype(bool), grid, xy)
 
     def sensor_reach_m() -> float:
         """The reach a pass of the route saw to: at least ``_MIN_PASS_REACH_M``."""
@@ -818,12 +817,12 @@ def _seen_on_another_pass(
     aligned: _Aligned,
     local: OccupancyMap,
     config: Config,
-    near_wall: Callable[[float], np.ndarray],
+    near_wall: Callable[[np.ndarray, float], np.ndarray],
     reach_m: Callable[[], float],
 ) -> bool:
     """Whether another pass of a route aligned in pieces, its run within ``reach_m()`` of
     them (the sensor's), saw ``diff``'s cells as no change: an added one's on a global wall
-    (``near_wall(distance)``: within twice the differences' tolerance for a line, within the
+    (``near_wall(xy, distance)``: within twice the differences' tolerance for a line, within the
     tolerance for one that spreads across itself, ``_FOLD_LINE_SPREAD_M``; that pass, past
     half the reach, no more than ``_PASS_NEAR_RATIO`` times as far from them as the robot's
     own run), a removed one's on the open floor (free, off every wall by twice the tolerance)
@@ -838,13 +837,13 @@ def _seen_on_another_pass(
     # A pass's wall lands within twice the differences' tolerance (the drift left in its
     # piece); an added difference with a depth of its own, not a line, within the tolerance.
     landing_m = 2 * tolerance_m
-    line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
-    spread_m = refit_stage.spread_across_m(diff.cells, resolution=grid.resolution)
-    if diff.kind == "added" and spread_m >= line_m:
-        landing_m = tolerance_m
+    if diff.kind == "added":
+        line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
+        if refit_stage.spread_across_m(diff.cells, resolution=grid.resolution) >= line_m:
+            landing_m = tolerance_m
 
     def fits(xy: np.ndarray) -> np.ndarray:
-        on_wall = grid.sample(near_wall(landing_m), xy, False)
+        on_wall = near_wall(xy, landing_m)
         if diff.kind == "added":
             return on_wall
         return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)

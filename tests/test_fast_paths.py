@@ -25,6 +25,7 @@ from mapserver.diff import (
     distance_to,
     drop_small,
     near,
+    near_at,
     offset_distances,
     raw_differences,
 )
@@ -369,6 +370,25 @@ def test_near_walls_at_points_is_the_whole_view_sampled(seed: int, distance_m: f
     for points in (corner, spread, corner[:0]):
         expected = grid.sample(view.near_walls(distance_m), points, False)
         assert np.array_equal(view.near_walls_at(points, distance_m), expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("radius_px", [1, 3, 6])
+def test_near_at_points_is_the_whole_dilation_sampled(seed: int, radius_px: int) -> None:
+    """The fold check's "within so far of a global wall" (an elliptic kernel, as
+    ``cv2.getStructuringElement`` makes it), worked out around the points only: the same as
+    the whole mask dilated and sampled, at the grid's edges and off it too."""
+    rng = np.random.default_rng(seed)
+    grid = Grid(-1.0, 2.0, 0.05, 130, 110)
+    walls = _walls(seed, grid.shape, 0.01)
+    size = 2 * radius_px + 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    whole = cv2.dilate(walls.view(np.uint8), disk).view(bool)
+    corner = rng.uniform([-1.5, 1.5], [1.5, 4.0], (300, 2))
+    spread = rng.uniform([-1.2, 1.8], [5.7, 7.7], (300, 2))
+    for points in (corner, spread, corner[:0]):
+        expected = grid.sample(whole, points, False)
+        assert np.array_equal(near_at(walls, disk.astype(bool), grid, points), expected)
 
 
 @pytest.mark.parametrize("seed", range(6))
