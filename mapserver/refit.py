@@ -139,8 +139,9 @@ def ghost_of_wall(
     max_width_m: float = 0.2,
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
-    second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool), a line
-    at least ``min_length_m`` long that one move across itself of at most ``shift_m`` (and a
+    second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool) that
+    run in line with it (within ``max_width_m`` across), a line at least ``min_length_m`` long
+    that one move across itself of at most ``shift_m`` (and a
     turn of at most ``turn_deg``) lays, 80 % of it and 80 % of the difference, within
     ``tolerance_m`` of a global wall the local map also shows in place; the difference itself
     no wider across that line than ``max_width_m`` (its cells' 5-95 % spread).
@@ -167,17 +168,26 @@ def ghost_of_wall(
     pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
-    # Long enough to be a stretch of wall: its extent along its main axis.
+    # The line runs the way the difference itself runs when that is long enough to say (else
+    # the way all of them do), and holds the added cells within max_width_m of it: any other
+    # obstacle within reach (a box a metre off) would turn it and thicken it.
+    own_pts = np.stack([rows - r0, cols - c0], axis=1).astype(float)
     pts = np.stack([pr, pc], axis=1).astype(float)
+    centre, axis = _main_axis(own_pts)
+    if _extent(own_pts, centre, axis) * resolution < min_length_m / 3:
+        centre, axis = _main_axis(pts)
+    normal = np.array([axis[1], -axis[0]])
+    on_line = np.abs((pts - centre) @ normal) * resolution <= max_width_m
+    pr, pc, pts = pr[on_line], pc[on_line], pts[on_line]
+    if len(pr) < 3:
+        return False
+    # Long enough to be a stretch of wall.
     centre = pts.mean(axis=0)
-    centred = pts - centre
-    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
-    along = centred @ axis
-    if float(along.max() - along.min()) * resolution < min_length_m:
+    if _extent(pts, centre, axis) * resolution < min_length_m:
         return False
     # The difference itself a piece of that line, thin across it (a wall seen again is one
     # line of hits; a box or a column beside a wall seen twice has a depth of its own).
-    across = (np.stack([rows - r0, cols - c0], axis=1) - centre) @ np.array([axis[1], -axis[0]])
+    across = (own_pts - centre) @ normal
     lo, hi = np.percentile(across, [5, 95])
     if float(hi - lo) * resolution > max_width_m:
         return False
@@ -337,6 +347,20 @@ def _around(
     mark = np.zeros(shape, np.uint8)
     mark[rows - box[0].start, cols - box[1].start] = 1
     return np.asarray(cv2.dilate(mark, kernel) > 0)
+
+
+def _main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The centre of ``points`` ((N, 2)) and the unit direction they spread most along."""
+    centre = points.mean(axis=0)
+    return centre, np.linalg.svd(points - centre, full_matrices=False)[2][0]
+
+
+def _extent(
+    points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
+) -> float:
+    """How far ``points`` reach along ``axis`` (in their own units)."""
+    along = (points - centre) @ axis
+    return float(along.max() - along.min())
 
 
 def _window(

@@ -167,6 +167,22 @@ def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
     assert ghost_of_wall(cells(ghost & (np.arange(160) < 80)), added, glob, local, **kw)
 
 
+def test_a_wall_drawn_again_stays_a_ghost_beside_a_new_box() -> None:
+    """A revisit drew 3.5 m of the wall again 0.4 m off, and a new 0.5 m box stands 1 m from
+    that copy, within reach: the line is measured along the copy itself, so the box neither
+    turns it nor makes it look thick."""
+    glob, local = _corridor()
+    ghost = np.zeros(glob.shape, bool)
+    ghost[48:50, 40:110] = True
+    box = np.zeros(glob.shape, bool)
+    box[64:74, 50:60] = True
+    added = ghost | box
+    local |= added
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert ghost_of_wall(cells(ghost), added, glob, local, **kw)
+    assert not ghost_of_wall(cells(box), added, glob, local, **kw)
+
+
 def _column_hall() -> tuple[np.ndarray, np.ndarray]:
     """A 6 m hall (global states) with a 0.5 m column in it; and the column's cells."""
     glob = np.full((120, 120), FREE, np.uint8)
