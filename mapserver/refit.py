@@ -140,8 +140,8 @@ def ghost_of_wall(
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
     second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool) that
-    run in line with it (within ``max_width_m`` across), a line at least ``min_length_m`` long
-    that one move across itself of at most ``shift_m`` (and a
+    lie on the line through it holding the most of them (within ``max_width_m`` across that
+    line), a line at least ``min_length_m`` long that one move across itself of at most ``shift_m`` (and a
     turn of at most ``turn_deg``) lays, 80 % of it and 80 % of the difference, within
     ``tolerance_m`` of a global wall the local map also shows in place; the difference itself
     no wider across that line than ``max_width_m`` (its cells' 5-95 % spread).
@@ -168,14 +168,13 @@ def ghost_of_wall(
     pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
-    # The line runs the way the difference itself runs when that is long enough to say (else
-    # the way all of them do), and holds the added cells within max_width_m of it: any other
-    # obstacle within reach (a box a metre off) would turn it and thicken it.
+    # The line: of the lines through the difference, the one that holds the most added cells,
+    # with the added cells within max_width_m of it. Any other obstacle within reach (a box a
+    # metre off) would turn a line fitted to all of them, and thicken it.
     own_pts = np.stack([rows - r0, cols - c0], axis=1).astype(float)
     pts = np.stack([pr, pc], axis=1).astype(float)
-    centre, axis = _main_axis(own_pts)
-    if _extent(own_pts, centre, axis) * resolution < min_length_m / 3:
-        centre, axis = _main_axis(pts)
+    held = _best_line_through(pts, own_pts.mean(axis=0), half_width=max_width_m / 2 / resolution)
+    centre, axis = _main_axis(pts[held])
     normal = np.array([axis[1], -axis[0]])
     on_line = np.abs((pts - centre) @ normal) * resolution <= max_width_m
     pr, pc, pts = pr[on_line], pc[on_line], pts[on_line]
@@ -183,7 +182,8 @@ def ghost_of_wall(
         return False
     # Long enough to be a stretch of wall.
     centre = pts.mean(axis=0)
-    if _extent(pts, centre, axis) * resolution < min_length_m:
+    along = (pts - centre) @ axis
+    if float(along.max() - along.min()) * resolution < min_length_m:
         return False
     # The difference itself a piece of that line, thin across it (a wall seen again is one
     # line of hits; a box or a column beside a wall seen twice has a depth of its own).
@@ -195,7 +195,7 @@ def ghost_of_wall(
     # Moves across the line only: slid along itself, any line lands on any wall it continues.
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = (axis[1] * steps)[:, None], (-axis[0] * steps)[:, None]
-    own_r, own_c = (rows - r0).astype(float), (cols - c0).astype(float)
+    own_r, own_c = own_pts[:, 0], own_pts[:, 1]
 
     def landed(
         r: NDArray[np.float64], c: NDArray[np.float64], ct: float, st: float
@@ -349,18 +349,23 @@ def _around(
     return np.asarray(cv2.dilate(mark, kernel) > 0)
 
 
+def _best_line_through(
+    points: NDArray[np.float64], through: NDArray[np.float64], *, half_width: float
+) -> BoolArray:
+    """Which of ``points`` ((N, 2)) lie within ``half_width`` of the line through ``through``
+    that holds the most of them, over directions 2 degrees apart (a Hough transform about one
+    point); the first such direction from the row axis on a tie."""
+    theta = np.radians(np.arange(0.0, 180.0, 2.0))
+    normals = np.stack([np.sin(theta), -np.cos(theta)], axis=1)
+    within = np.abs((points - through) @ normals.T) <= half_width
+    return np.asarray(within[:, int(np.argmax(within.sum(axis=0)))])
+
+
 def _main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The centre of ``points`` ((N, 2)) and the unit direction they spread most along."""
+    """The centre of ``points`` ((N, 2), at least one) and the unit direction they spread most
+    along (its sign, and for points spread evenly the direction itself, arbitrary)."""
     centre = points.mean(axis=0)
     return centre, np.linalg.svd(points - centre, full_matrices=False)[2][0]
-
-
-def _extent(
-    points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
-) -> float:
-    """How far ``points`` reach along ``axis`` (in their own units)."""
-    along = (points - centre) @ axis
-    return float(along.max() - along.min())
 
 
 def _window(

@@ -167,15 +167,42 @@ def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
     assert ghost_of_wall(cells(ghost & (np.arange(160) < 80)), added, glob, local, **kw)
 
 
-def test_a_wall_drawn_again_stays_a_ghost_beside_a_new_box() -> None:
+@pytest.mark.parametrize("piece_cols", [(40, 110), (60, 68)])
+def test_a_wall_drawn_again_stays_a_ghost_beside_a_new_box(piece_cols: tuple[int, int]) -> None:
     """A revisit drew 3.5 m of the wall again 0.4 m off, and a new 0.5 m box stands 1 m from
-    that copy, within reach: the line is measured along the copy itself, so the box neither
-    turns it nor makes it look thick."""
+    that copy, within reach: the line is the one through the difference (the whole copy, or a
+    0.4 m piece of it that DBSCAN cut off) that holds the most added cells, so the box neither
+    turns it nor makes it look thick; the box itself is no line."""
     glob, local = _corridor()
     ghost = np.zeros(glob.shape, bool)
     ghost[48:50, 40:110] = True
     box = np.zeros(glob.shape, bool)
     box[64:74, 50:60] = True
+    added = ghost | box
+    local |= added
+    piece = ghost.copy()
+    piece[:, : piece_cols[0]] = piece[:, piece_cols[1] :] = False
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert ghost_of_wall(cells(piece), added, glob, local, **kw)
+    assert not ghost_of_wall(cells(box), added, glob, local, **kw)
+
+
+def test_a_slanted_wall_drawn_again_stays_a_ghost_beside_a_new_box() -> None:
+    """The same along a wall 20 degrees off the grid's axes: the copy 0.4 m across it, the box
+    1 m from the copy."""
+
+    def rows_of(c: np.ndarray, down: int) -> np.ndarray:
+        return np.rint(20 + (c - 10) * math.tan(math.radians(20.0))).astype(int) + down
+
+    glob = np.zeros((100, 160), bool)
+    c = np.arange(10, 150)
+    glob[rows_of(c, 0), c] = True
+    local = glob.copy()
+    ghost = np.zeros(glob.shape, bool)
+    cg = np.arange(40, 110)
+    ghost[rows_of(cg, 8), cg] = True  # 8 rows down: 0.4 m x cos 20 degrees across
+    box = np.zeros(glob.shape, bool)
+    box[62:72, 40:50] = True
     added = ghost | box
     local |= added
     kw = {"resolution": RES, "tolerance_m": 0.15}
