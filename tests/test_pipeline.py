@@ -276,15 +276,15 @@ def test_a_stage_run_inside_another_counts_for_itself_only(monkeypatch: pytest.M
 
 
 def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_reported() -> None:
-    """The drifted floor (0.04 m2: 16 cells at 0.05 m) is on added specks only: a removed piece
-    of 12 cells, every one seen through, is reported after a drifting session; an added one of
+    """The drifted floor (0.03 m2: 12 cells at 0.05 m) is on added specks only: a removed piece
+    of 10 cells, every one seen through, is reported after a drifting session; an added one of
     the same size is not."""
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
     piece = np.zeros((100, 100), bool)
-    piece[40:43, 40:44] = True  # 12 cells, 0.03 m2
+    piece[40:42, 40:45] = True  # 10 cells, 0.025 m2
     config = Config()
-    assert config.pipeline.diff.drifted_min_area_m2 > 12 * 0.05**2
+    assert config.pipeline.diff.drifted_min_area_m2 > 10 * 0.05**2
     for kind in ("added", "removed"):
         masks = diff_stage.DiffMasks(
             added=piece if kind == "added" else np.zeros_like(piece),
