@@ -46,6 +46,9 @@ _SLIDE_COST = 0.05
 # added cells instead, for all of them, joined collinear copies of two walls across the gap
 # between them: 2 changes fewer found, 2 false positives more over 56 sets).
 _OWN_AXIS_SHARE = 1 / 3
+# ... and so does a shorter one this many times longer than it is wide (extent along its main
+# axis over the extent across, in cells): a piece of a copy drawn as sparse hits in a row.
+_OWN_AXIS_ASPECT = 2.0
 
 
 def explained_by_refit(
@@ -145,11 +148,15 @@ def ghost_of_wall(
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
     second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool) that
-    lie within ``max_width_m`` of the line it runs along (for a short piece, the line through
-    it that holds the most of them), a line at least ``min_length_m`` long that one move across itself of at most ``shift_m`` (and a
-    turn of at most ``turn_deg``) lays, 80 % of it and 80 % of the difference, within
-    ``tolerance_m`` of a global wall the local map also shows in place; the difference itself
-    no wider across that line than ``max_width_m`` (its cells' 5-95 % spread).
+    lie within ``max_width_m`` of the line it runs along, a line at least ``min_length_m`` long
+    that one move across itself of at most ``shift_m`` (and a turn of at most ``turn_deg``)
+    lays, 80 % of it and 80 % of the difference, within ``tolerance_m`` of a global wall the
+    local map also shows in place; the difference itself no wider across that line than
+    ``max_width_m`` (its cells' 5-95 % spread).
+
+    The line it runs along is its own main axis when it is long or elongated enough to have
+    one (``_OWN_AXIS_SHARE``, ``_OWN_AXIS_ASPECT``); for a compact piece, the main axis of the
+    added cells within ``max_width_m / 2`` of the line through it that holds the most of them.
 
     The walls around a revisit's second copy fit where they are (the first copy lies on the
     global wall), so :func:`explained_by_refit` keeps it; the copy itself fits once moved. A
@@ -173,14 +180,18 @@ def ghost_of_wall(
     pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
-    # The line runs the way the difference itself runs when it is long enough to say; a short
-    # piece (DBSCAN cuts a copy drawn as sparse hits) lies on the line through it that holds
-    # the most added cells. A line fitted to all of them would be turned and thickened by any
-    # other obstacle within reach (a box a metre off), and might miss the difference.
+    # The line runs the way the difference itself runs when it is long or elongated enough to
+    # say; a compact piece (DBSCAN cuts a copy drawn as sparse hits) lies on the line through
+    # it that holds the most added cells. A line fitted to all of them would be turned and
+    # thickened by any other obstacle within reach (a box a metre off), and might miss the
+    # difference.
     own_pts = np.stack([rows - r0, cols - c0], axis=1).astype(float)
     pts = np.stack([pr, pc], axis=1).astype(float)
     centre, axis = _main_axis(own_pts)
-    if _extent(own_pts, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE:
+    if (
+        _extent(own_pts, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE
+        and _aspect(own_pts, centre, axis) < _OWN_AXIS_ASPECT
+    ):
         held = _best_line_through(pts, centre, half_width=max_width_m / 2 / resolution)
         centre, axis = _main_axis(pts[held])
     normal = np.array([axis[1], -axis[0]])
@@ -359,9 +370,9 @@ def _around(
 def _best_line_through(
     points: NDArray[np.float64], through: NDArray[np.float64], *, half_width: float
 ) -> BoolArray:
-    """Which of ``points`` ((N, 2)) lie within ``half_width`` of the line through ``through``
-    that holds the most of them, over directions 2 degrees apart (a Hough transform about one
-    point); the first such direction from the row axis on a tie."""
+    """Which of ``points`` ((N, 2)) lie within ``half_width`` (their units) of the line through
+    ``through`` that holds the most of them, over directions 2 degrees apart (a Hough transform
+    about one point); the first such direction from the row axis on a tie."""
     theta = np.radians(np.arange(0.0, 180.0, 2.0))
     normals = np.stack([np.sin(theta), -np.cos(theta)], axis=1)
     within = np.abs((points - through) @ normals.T) <= half_width
@@ -374,6 +385,16 @@ def _extent(
     """How far ``points`` ((N, 2), at least one) reach along ``axis`` (in their own units)."""
     along = (points - centre) @ axis
     return float(along.max() - along.min())
+
+
+def _aspect(
+    points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
+) -> float:
+    """How many times longer than wide ``points`` ((N, 2), cells) are along ``axis``: their
+    extent along it over their extent across it, each counted in cells (one more than the
+    span between centres), so that a single row of cells has a width of one."""
+    normal = np.array([axis[1], -axis[0]])
+    return (_extent(points, centre, axis) + 1.0) / (_extent(points, centre, normal) + 1.0)
 
 
 def _main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -13,6 +13,7 @@ from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import (
     Faces,
+    _best_line_through,
     explained_by_refit,
     faces_seen_from_behind,
     floor_seen_share,
@@ -185,6 +186,48 @@ def test_a_wall_drawn_again_stays_a_ghost_beside_a_new_box(piece_cols: tuple[int
     kw = {"resolution": RES, "tolerance_m": 0.15}
     assert ghost_of_wall(cells(piece), added, glob, local, **kw)
     assert not ghost_of_wall(cells(box), added, glob, local, **kw)
+
+
+def test_a_piece_of_a_copy_drawn_as_sparse_hits_stays_a_ghost_beside_a_new_box() -> None:
+    """The copy drawn as a hit every other cell, the box as before: a 0.4 m piece of it is a
+    row of 5 cells, elongated, and the line follows it (the box holds more cells than any line
+    through the piece along the copy)."""
+    glob, local = _corridor()
+    ghost = np.zeros(glob.shape, bool)
+    ghost[48, 40:110:2] = True
+    box = np.zeros(glob.shape, bool)
+    box[64:74, 50:60] = True
+    added = ghost | box
+    local |= added
+    piece = ghost.copy()
+    piece[:, :60] = piece[:, 69:] = False
+    assert np.count_nonzero(piece) == 5
+    assert ghost_of_wall(cells(piece), added, glob, local, resolution=RES, tolerance_m=0.15)
+
+
+def test_a_compact_piece_of_a_thick_copy_lies_on_the_line_that_holds_most_cells() -> None:
+    """A copy three cells thick, and a piece of it three cells across and two along: too
+    compact for a direction of its own (its main axis runs across the copy); the line through
+    it that holds the most added cells is the copy's."""
+    glob, local = _corridor()
+    ghost = np.zeros(glob.shape, bool)
+    ghost[47:50, 40:110] = True
+    local |= ghost
+    piece = np.zeros(glob.shape, bool)
+    piece[47:50, 60:62] = True
+    assert ghost_of_wall(cells(piece), ghost, glob, local, resolution=RES, tolerance_m=0.15)
+
+
+def test_the_line_through_a_point_that_holds_the_most_points() -> None:
+    """A row of 40 points 30 degrees off the row axis through the origin, and a block of 100
+    points off it: the line through the origin along the row holds the row, not the block."""
+    t = np.arange(-20, 20, dtype=float)
+    angle = math.radians(30.0)
+    row = np.stack([t * math.cos(angle), t * math.sin(angle)], axis=1)
+    block = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0)), axis=-1).reshape(-1, 2)
+    block += (30.0, -30.0)
+    held = _best_line_through(np.concatenate([row, block]), np.zeros(2), half_width=1.0)
+    assert held[:40].all() and not held[40:].any()
 
 
 def test_a_slanted_wall_drawn_again_stays_a_ghost_beside_a_new_box() -> None:
