@@ -85,7 +85,9 @@ def cluster_mask(
         members = labels == label
         pts = xy[members]
         area = len(pts) * grid.resolution**2
-        if area < min_area_m2:
+        # A floor of whole cells (12 at 0.05 m is 0.03 m2) keeps that many, whatever the
+        # rounding of the product.
+        if area < min_area_m2 * (1 - 1e-9):
             continue
         if evidence is not None:
             shown = evidence[rows[members], cols[members]]

@@ -296,6 +296,20 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
         assert [d.kind for d in still] == [kind]
 
 
+def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported() -> None:
+    """The drifted floor is 0.03 m2, 12 cells at 0.05 m (a box's face seen from one side):
+    12 cells are reported, 11 are not (whatever the rounding of 12 x 0.05 x 0.05)."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    config = Config()
+    for n, kinds in ((12, ["added"]), (11, [])):
+        face = np.zeros((100, 100), bool)
+        face[40, 40 : 40 + n] = True  # one row of n cells, as a face seen from one side
+        masks = diff_stage.DiffMasks(added=face, removed=np.zeros_like(face))
+        found = pipeline._cluster_masks(masks, face, grid, config, local, drifted=True)
+        assert [d.kind for d in found] == kinds
+
+
 def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> None:
     """A block (rows 40 on) whose face the local map sees free 0.3 m deep, no route: evidence
     that it is gone when the robot's rays were short, none when they reached 30 m (three
