@@ -154,9 +154,8 @@ def ghost_of_wall(
     local map also shows in place; the difference itself no wider across that line than
     ``max_width_m`` (its cells' 5-95 % spread).
 
-    The line it runs along is its own main axis when it is long or elongated enough to have
-    one (``_OWN_AXIS_SHARE``, ``_OWN_AXIS_ASPECT``); for a compact piece, the main axis of the
-    added cells within ``max_width_m / 2`` of the line through it that holds the most of them.
+    The line it runs along: :func:`_line_of` (its own main axis, or for a compact piece the
+    line through it that holds the most added cells).
 
     The walls around a revisit's second copy fit where they are (the first copy lies on the
     global wall), so :func:`explained_by_refit` keeps it; the copy itself fits once moved. A
@@ -180,21 +179,12 @@ def ghost_of_wall(
     pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
-    # The line runs the way the difference itself runs when it is long or elongated enough to
-    # say; a compact piece (DBSCAN cuts a copy drawn as sparse hits) lies on the line through
-    # it that holds the most added cells. A line fitted to all of them would be turned and
-    # thickened by any other obstacle within reach (a box a metre off), and might miss the
-    # difference.
     own_pts = np.stack([rows - r0, cols - c0], axis=1).astype(float)
     pts = np.stack([pr, pc], axis=1).astype(float)
-    centre, axis = _main_axis(own_pts)
-    if (
-        _extent(own_pts, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE
-        and _aspect(own_pts, centre, axis) < _OWN_AXIS_ASPECT
-    ):
-        held = _best_line_through(pts, centre, half_width=max_width_m / 2 / resolution)
-        centre, axis = _main_axis(pts[held])
-    normal = np.array([axis[1], -axis[0]])
+    centre, axis = _line_of(
+        own_pts, pts, resolution=resolution, min_length_m=min_length_m, max_width_m=max_width_m
+    )
+    normal = _across(axis)
     on_line = np.abs((pts - centre) @ normal) * resolution <= max_width_m
     pr, pc, pts = pr[on_line], pc[on_line], pts[on_line]
     if len(pr) < 3:
@@ -212,8 +202,7 @@ def ghost_of_wall(
     near_target = near(target, within)
     # Moves across the line only: slid along itself, any line lands on any wall it continues.
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
-    dy, dx = (axis[1] * steps)[:, None], (-axis[0] * steps)[:, None]
-    own_r, own_c = own_pts[:, 0], own_pts[:, 1]
+    dy, dx = (normal[0] * steps)[:, None], (normal[1] * steps)[:, None]
 
     def landed(
         r: NDArray[np.float64], c: NDArray[np.float64], ct: float, st: float
@@ -230,7 +219,7 @@ def ghost_of_wall(
         # The line and the difference itself, by the same move (a box beside a wall seen
         # twice is near the line, not on it).
         line = landed(pr.astype(float), pc.astype(float), ct, st)
-        own = landed(own_r, own_c, ct, st)
+        own = landed(own_pts[:, 0], own_pts[:, 1], ct, st)
         if ((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE)).any():
             return True
     return False
@@ -367,6 +356,36 @@ def _around(
     return np.asarray(cv2.dilate(mark, kernel) > 0)
 
 
+def _line_of(
+    own: NDArray[np.float64],
+    points: NDArray[np.float64],
+    *,
+    resolution: float,
+    min_length_m: float,
+    max_width_m: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A point and the unit direction of the line a difference (its cells ``own``, (N, 2)) runs
+    along among ``points`` (the added cells around it), in cells: its own main axis when it is
+    long (``_OWN_AXIS_SHARE`` of ``min_length_m``) or elongated (``_OWN_AXIS_ASPECT``) enough to
+    say; for a compact piece (DBSCAN cuts a copy drawn as sparse hits), the main axis of the
+    points within ``max_width_m / 2`` of the line through it that holds the most of them. A line
+    fitted to all the points would be turned and thickened by any other obstacle among them (a
+    box a metre off), and might miss the difference."""
+    centre, axis = _main_axis(own)
+    if (
+        _extent(own, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE
+        and _aspect(own, centre, axis) < _OWN_AXIS_ASPECT
+    ):
+        held = _best_line_through(points, centre, half_width=max_width_m / 2 / resolution)
+        centre, axis = _main_axis(points[held])
+    return centre, axis
+
+
+def _across(axis: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The unit direction square to ``axis`` (row, col)."""
+    return np.array([axis[1], -axis[0]])
+
+
 def _best_line_through(
     points: NDArray[np.float64], through: NDArray[np.float64], *, half_width: float
 ) -> BoolArray:
@@ -393,8 +412,7 @@ def _aspect(
     """How many times longer than wide ``points`` ((N, 2), cells) are along ``axis``: their
     extent along it over their extent across it, each counted in cells (one more than the
     span between centres), so that a single row of cells has a width of one."""
-    normal = np.array([axis[1], -axis[0]])
-    return (_extent(points, centre, axis) + 1.0) / (_extent(points, centre, normal) + 1.0)
+    return (_extent(points, centre, axis) + 1.0) / (_extent(points, centre, _across(axis)) + 1.0)
 
 
 def _main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
