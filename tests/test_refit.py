@@ -168,19 +168,27 @@ def test_a_new_box_beside_a_wall_seen_twice_is_no_ghost() -> None:
     assert ghost_of_wall(cells(ghost & (np.arange(160) < 80)), added, glob, local, **kw)
 
 
+def _copy_beside_box(copy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The corridor with its wall drawn again where ``copy`` (bool, its shape) says, and a new
+    0.5 m box 0.7-1.2 m below that copy: the global walls, the local map's walls, the added
+    cells (copy and box) and the box."""
+    glob, local = _corridor()
+    box = np.zeros(glob.shape, bool)
+    box[64:74, 50:60] = True
+    added = copy | box
+    local |= added
+    return glob, local, added, box
+
+
 @pytest.mark.parametrize("piece_cols", [(40, 110), (60, 68)])
 def test_a_wall_drawn_again_stays_a_ghost_beside_a_new_box(piece_cols: tuple[int, int]) -> None:
     """A revisit drew 3.5 m of the wall again 0.4 m off, and a new 0.5 m box stands 1 m from
     that copy, within reach: the line is the one through the difference (the whole copy, or a
     0.4 m piece of it that DBSCAN cut off) that holds the most added cells, so the box neither
     turns it nor makes it look thick; the box itself is no line."""
-    glob, local = _corridor()
-    ghost = np.zeros(glob.shape, bool)
+    ghost = np.zeros((80, 160), bool)
     ghost[48:50, 40:110] = True
-    box = np.zeros(glob.shape, bool)
-    box[64:74, 50:60] = True
-    added = ghost | box
-    local |= added
+    glob, local, added, box = _copy_beside_box(ghost)
     piece = ghost.copy()
     piece[:, : piece_cols[0]] = piece[:, piece_cols[1] :] = False
     kw = {"resolution": RES, "tolerance_m": 0.15}
@@ -192,13 +200,9 @@ def test_a_piece_of_a_copy_drawn_as_sparse_hits_stays_a_ghost_beside_a_new_box()
     """The copy drawn as a hit every other cell, the box as before: a 0.4 m piece of it is a
     row of 5 cells, elongated, and the line follows it (the box holds more cells than any line
     through the piece along the copy)."""
-    glob, local = _corridor()
-    ghost = np.zeros(glob.shape, bool)
+    ghost = np.zeros((80, 160), bool)
     ghost[48, 40:110:2] = True
-    box = np.zeros(glob.shape, bool)
-    box[64:74, 50:60] = True
-    added = ghost | box
-    local |= added
+    glob, local, added, _ = _copy_beside_box(ghost)
     piece = ghost.copy()
     piece[:, :60] = piece[:, 69:] = False
     assert np.count_nonzero(piece) == 5
