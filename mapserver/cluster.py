@@ -13,6 +13,7 @@ rounding of their coordinates, are always neighbours here.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -55,6 +56,7 @@ def cluster_mask(
     min_area_m2: float = 0.0,
     evidence: NDArray[np.bool_] | None = None,
     min_evidence: float = 0.5,
+    min_evidence_m2: float = math.inf,
     engine: Engine = "grid",
 ) -> list[Difference]:
     """Group the True pixels of ``mask`` (on ``grid``) into obstacles with DBSCAN.
@@ -62,8 +64,9 @@ def cluster_mask(
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
-    its pixels are in it, and reported as those and its pixels within ``eps_m`` of them (the
-    area floor applies to the cluster before that).
+    its pixels are in it, or when those cover ``min_evidence_m2`` or more however many do not,
+    and reported as those and its pixels within ``eps_m`` of them (the area floor applies to
+    the cluster before that).
     ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
     rows, cols = nonzero_cells(mask)
@@ -91,11 +94,13 @@ def cluster_mask(
             continue
         if evidence is not None:
             shown = evidence[rows[members], cols[members]]
-            if shown.mean() < min_evidence:
+            shown_m2 = np.count_nonzero(shown) * grid.resolution**2
+            if shown.mean() < min_evidence and shown_m2 < min_evidence_m2 * (1 - 1e-9):
                 continue
             # Reported as its evidence and what lies within eps of it: a strip of a wall's face
             # that grazing rays eroded (no evidence) joins a removal it touches, and would
-            # stretch its box along the wall.
+            # stretch its box along the wall; a fold's free band inside a block (no evidence)
+            # joins a piece of the block really gone, and may outnumber it.
             # The area floor above judged the cluster as found; this shapes only the report.
             # With no evidence at all (a share of 0 asked for), it is reported whole.
             if shown.any():

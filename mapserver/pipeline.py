@@ -571,6 +571,7 @@ def _cluster_masks(
             min_area_m2=min_area,
             evidence=evidence,
             min_evidence=d.removed_evidence_share,
+            min_evidence_m2=d.removed_evidence_m2,
             engine=d.cluster_engine,
         )
     return cluster_stage.sort_by_area(found)

@@ -161,6 +161,42 @@ def test_a_removed_obstacle_is_reported_without_the_face_strip_it_touches() -> N
     assert whole.pixels == 230
 
 
+@pytest.mark.parametrize(("gone_rows", "kept"), [(6, True), (4, True), (3, False)])
+def test_a_piece_of_a_block_gone_is_kept_beside_a_larger_free_band_without_evidence(
+    gone_rows: int, kept: bool
+) -> None:
+    """A piece of a block seen gone (its cells evidence, 5 columns wide) touches a band of the
+    block seen free without evidence (a fold's: 60 cells), which outnumbers it. It is kept for
+    the area its evidence covers when that is 0.05 m2 or more (6 rows: 0.075 m2; 4 rows: 0.05
+    exactly), and reported as its evidence and what lies within eps of it; 3 rows (0.0375 m2)
+    are dropped."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    mask = np.zeros(grid.shape, bool)
+    evidence = np.zeros(grid.shape, bool)
+    mask[10 : 10 + gone_rows, 10:15] = True
+    evidence[10 : 10 + gone_rows, 10:15] = True
+    mask[10:13, 15:35] = True  # the fold's band, 1.0 m long, 3 cells wide
+    found = cluster_mask(
+        mask,
+        grid,
+        "removed",
+        eps_m=0.3,
+        min_samples=3,
+        evidence=evidence,
+        min_evidence=0.5,
+        min_evidence_m2=0.05,
+    )
+    if not kept:
+        assert found == []
+        return
+    (piece,) = found
+    # Its evidence, and the band's first 0.3 m (6 columns of 3 cells) beside it.
+    assert piece.pixels == gone_rows * 5 + 6 * 3
+    assert piece.bbox[2] - piece.bbox[0] == pytest.approx(0.25 + 0.3)
+    # Asked only for the share, the cluster is dropped.
+    assert cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3, evidence=evidence) == []
+
+
 @pytest.mark.parametrize("seed", range(16))
 def test_grid_dbscan_labels_are_scikit_learns(seed: int) -> None:
     from sklearn.cluster import DBSCAN
