@@ -64,9 +64,9 @@ def cluster_mask(
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
-    its pixels are in it, or when those cover ``min_evidence_m2`` or more however many do not,
-    and reported as those and its pixels within ``eps_m`` of them (the area floor applies to
-    the cluster before that).
+    its pixels are in it, or when those cover ``min_evidence_m2`` and the area floor or more
+    however many do not, and reported as those and its pixels within ``eps_m`` of them (the
+    area floor applies to the cluster before that).
     ``engine`` picks the DBSCAN implementation (the labels are the same).
     """
     rows, cols = nonzero_cells(mask)
@@ -94,8 +94,11 @@ def cluster_mask(
             continue
         if evidence is not None:
             shown = evidence[rows[members], cols[members]]
+            # Kept for its evidence's area, that evidence alone passes the area floor too (on
+            # a coarse grid a cell or two of evidence would otherwise keep any cluster).
             shown_m2 = np.count_nonzero(shown) * grid.resolution**2
-            if shown.mean() < min_evidence and shown_m2 < min_evidence_m2 * (1 - 1e-9):
+            enough_m2 = max(min_evidence_m2, min_area_m2)
+            if shown.mean() < min_evidence and shown_m2 < enough_m2 * (1 - 1e-9):
                 continue
             # Reported as its evidence and what lies within eps of it: a strip of a wall's face
             # that grazing rays eroded (no evidence) joins a removal it touches, and would

@@ -11,6 +11,7 @@ from worlds import cut_local, office
 
 from mapserver.cluster import (
     ENGINES,
+    Difference,
     Engine,
     cluster_mask,
     dbscan_pixels,
@@ -195,6 +196,35 @@ def test_a_piece_of_a_block_gone_is_kept_beside_a_larger_free_band_without_evide
     assert piece.bbox[2] - piece.bbox[0] == pytest.approx(0.25 + 0.3)
     # Asked only for the share, the cluster is dropped.
     assert cluster_mask(mask, grid, "removed", eps_m=0.3, min_samples=3, evidence=evidence) == []
+
+
+def test_evidence_kept_for_its_area_must_pass_the_area_floor_too() -> None:
+    """On a 0.25 m grid one cell of evidence covers 0.0625 m2, more than the 0.05 m2 asked; in
+    a cluster of 9 cells (the floor 0.5 m2 met) it is still no removal: the evidence alone is
+    under the floor. Half the cells shown, the share keeps it whatever their area."""
+    grid = Grid(0.0, 0.0, 0.25, 20, 20)
+    mask = np.zeros(grid.shape, bool)
+    mask[5:8, 5:8] = True
+    evidence = np.zeros(grid.shape, bool)
+    evidence[6, 6] = True
+
+    def clusters() -> list[Difference]:
+        return cluster_mask(
+            mask,
+            grid,
+            "removed",
+            eps_m=0.3,
+            min_samples=3,
+            min_area_m2=0.5,
+            evidence=evidence,
+            min_evidence=0.5,
+            min_evidence_m2=0.05,
+        )
+
+    assert clusters() == []
+    evidence[5:7, 5:8] = True  # 6 of 9 cells
+    (kept,) = clusters()
+    assert kept.pixels == 9
 
 
 @pytest.mark.parametrize("seed", range(16))
