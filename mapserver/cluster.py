@@ -81,24 +81,23 @@ def cluster_mask(
     else:
         raise ValueError(f"unknown DBSCAN engine {engine!r}; use one of {', '.join(ENGINES)}")
     half = grid.resolution / 2.0
+    cell_m2 = grid.resolution**2
+    # Kept for its evidence's area, that evidence alone passes the area floor too (on a coarse
+    # grid a cell or two of evidence would otherwise keep any cluster).
+    evidence_floor_m2 = max(min_evidence_m2, min_area_m2)
     out = []
     for label in np.unique(labels):
         if label < 0:
             continue
         members = labels == label
         pts = xy[members]
-        area = len(pts) * grid.resolution**2
-        # A floor of whole cells (12 at 0.05 m is 0.03 m2) keeps that many, whatever the
-        # rounding of the product.
-        if area < min_area_m2 * (1 - 1e-9):
+        area = len(pts) * cell_m2
+        if _short_of(area, min_area_m2):
             continue
         if evidence is not None:
             shown = evidence[rows[members], cols[members]]
-            # Kept for its evidence's area, that evidence alone passes the area floor too (on
-            # a coarse grid a cell or two of evidence would otherwise keep any cluster).
-            shown_m2 = np.count_nonzero(shown) * grid.resolution**2
-            enough_m2 = max(min_evidence_m2, min_area_m2)
-            if shown.mean() < min_evidence and shown_m2 < enough_m2 * (1 - 1e-9):
+            shown_m2 = np.count_nonzero(shown) * cell_m2
+            if shown.mean() < min_evidence and _short_of(shown_m2, evidence_floor_m2):
                 continue
             # Reported as its evidence and what lies within eps of it: a strip of a wall's face
             # that grazing rays eroded (no evidence) joins a removal it touches, and would
@@ -110,7 +109,7 @@ def cluster_mask(
                 reach_px = eps_m / grid.resolution
                 members[members] = _near_evidence(rows[members], cols[members], shown, reach_px)
                 pts = xy[members]
-                area = len(pts) * grid.resolution**2
+                area = len(pts) * cell_m2
         lo, hi = pts.min(axis=0) - half, pts.max(axis=0) + half
         c = pts.mean(axis=0)
         out.append(
@@ -124,6 +123,12 @@ def cluster_mask(
             )
         )
     return out
+
+
+def _short_of(area_m2: float, floor_m2: float) -> bool:
+    """Whether an area of whole cells falls short of ``floor_m2``: a floor of whole cells (12
+    at 0.05 m is 0.03 m2) keeps that many, whatever the rounding of the product."""
+    return area_m2 < floor_m2 * (1 - 1e-9)
 
 
 def _near_evidence(
