@@ -487,12 +487,37 @@ def _drawn_structure(
         walls |= long_lines[labels]
     # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls
     # for the differences too, a wall drawn and seen gone is removed; not their blurred rims.
+    # A thin wall has no core (two pixels wide, an erosion leaves nothing): its darkest line.
     grey_walls = structure & (m.state == UNKNOWN)
     if grey_walls.any():
         walls |= cv2.erode(grey_walls.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        walls |= _grey_ridges(m, grey_walls)
     if same is not None:
         walls &= same
     return structure.astype(np.uint8), (walls if walls.any() else None)
+
+
+def _grey_ridges(m: OccupancyMap, grey_walls: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The cells of ``grey_walls`` on the ridge of the occupancy, where a wall drawn grey
+    stands: as dark as the darkest cell beside them but for ``_RIDGE_DROP`` (a blurred rim
+    gets lighter going out from it; a line drawn two pixels wide has both), not within two
+    cells of a black wall (whose grey rim they would be), in runs of at least a wall's
+    length (``_LINE_MIN_LENGTH_M``: not a mark, not scan noise)."""
+    occ = m.occupancy
+    darkest = cv2.dilate(occ, np.ones((3, 3), np.uint8))
+    ridge = grey_walls & (occ.astype(np.int16) >= darkest.astype(np.int16) - _RIDGE_DROP)
+    black = (m.state == OCCUPIED).view(np.uint8)
+    ridge &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(ridge.view(np.uint8), connectivity=8)
+    longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    keep = longest * m.resolution >= _LINE_MIN_LENGTH_M
+    keep[0] = False
+    return np.asarray(keep[labels], dtype=bool)
+
+
+# How much lighter (0..255 occupancy) than the darkest cell beside it a cell on a grey wall's
+# ridge may be: a line's two pixels, or a flat core's noise; a blurred rim drops far more.
+_RIDGE_DROP = 12
 
 
 # --- scoring ---------------------------------------------------------------------------------
