@@ -437,7 +437,18 @@ def make_view(
     raw = None
     if walls is not None:
         raw = state
-        state = resample(np.where(walls, OCCUPIED, crop.state).astype(np.uint8), crop_grid, grid)
+        states = np.where(walls, OCCUPIED, crop.state)
+        if not _saver_unknown(whole):
+            # A drawing with an unknown grey of its own: its grey boxes (labels, icons) are
+            # drawn and anti-aliased as its lines are; their rims, grown as the lines are,
+            # are theirs, not floor.
+            grow = round(_LINE_HALF_WALL_M / crop.resolution)
+            if grow > 0:
+                size = 2 * grow + 1
+                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+                boxes = cv2.dilate((crop.state == UNKNOWN).view(np.uint8), kernel) > 0
+                states = np.where(boxes & (states == FREE), UNKNOWN, states)
+        state = resample(states.astype(np.uint8), crop_grid, grid)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
     return GlobalView(grid, state, structure, wall_reach_m, raw)
 

@@ -109,6 +109,37 @@ def test_the_view_of_a_drawing_has_its_long_lines_as_walls_not_its_marks() -> No
     assert view.structure[rc, cc]  # though the search may use it
 
 
+def test_a_drawing_s_grey_boxes_are_grown_as_its_lines_are_not_a_scan_s_unknown() -> None:
+    # A label box drawn in the drawing's own unknown grey, anti-aliased into a row each side
+    # that the thresholds read as free: what stands there (the box, as thick as its lines'
+    # walls) reaches over its rim, so a face seen there is the box, not a new obstacle. The
+    # view marks the rim unknown (never a difference), half a thin wall (0.08 m) deep.
+    g = plan()
+    g[69, 120:160] = g[90, 120:160] = 215  # the box's anti-aliased rims (read as free)
+    m = drawing(g)
+    assert (m.state[69, 120:160] == FREE).all()
+    local = from_states(np.full((40, 40), FREE, np.uint8), RES, (6.0, 0.5, 0.0))
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+
+    def at(x: float, row: int) -> tuple[int, int]:
+        ((c, r),) = np.rint(view.grid.to_pixel([[x, 6.0 - RES * (row + 0.5)]])).astype(int)
+        return r, c
+
+    for row in (68, 69, 90, 91):  # the rims, and a cell beyond them (0.05 m < 0.08 m)
+        assert view.state[at(7.0, row)] == UNKNOWN
+    for row in (66, 93):  # floor
+        assert view.state[at(7.0, row)] == FREE
+    # A scan (map_saver's unknown grey): its unknown is where no ray went, and the free cells
+    # beside it are floor seen free.
+    g = np.full((120, 200), 205, np.uint8)
+    g[20:100, 20:180] = 254
+    g[40, 20:180] = g[80, 20:180] = 150  # grey walls: the map passes for a drawing
+    g[55:65, 60:140] = 205  # a patch never seen
+    m = drawing(g)
+    view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    assert view.state[at(5.0, 54)] == FREE and view.state[at(5.0, 65)] == FREE
+
+
 def floorplan_world(m: OccupancyMap) -> OccupancyMap:
     """What stands in a building drawn as ``m``: its outlines (not the faint guide lines the
     thresholds read as free) and its dark boxes, walls a few pixels thick."""
