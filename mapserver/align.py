@@ -268,12 +268,18 @@ def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
     # A drawing has more clear line pixels than black cells (a scan, its walls black, fewer).
     if np.count_nonzero(lines & clearly[occ]) <= n_black:
         return None
-    grow = round(_LINE_HALF_WALL_M / m.resolution)
-    if grow > 0:
-        size = 2 * grow + 1
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-        lines = cv2.dilate(lines.view(np.uint8), kernel).view(bool)
-    return np.asarray(lines, dtype=bool)
+    return _grown(lines, m.resolution)
+
+
+def _grown(mask: NDArray[np.bool_], resolution: float) -> NDArray[np.bool_]:
+    """(H, W) bool: ``mask`` grown by half a thin wall (``_LINE_HALF_WALL_M``, rounded to whole
+    cells: 2 at 0.05 m, 1 at the RMF drawing's 0.082 m, none over 0.16 m), where a lidar sees
+    the faces of what a drawing draws."""
+    grow = round(_LINE_HALF_WALL_M / resolution)
+    if grow == 0:
+        return np.asarray(mask, dtype=bool)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+    return np.asarray(cv2.dilate(mask.view(np.uint8), kernel) > 0, dtype=bool)
 
 
 # A line is at most a few pixels wide and at least this much darker (0..255 occupancy) than
@@ -430,7 +436,7 @@ def make_view(
         same = source.state == crop.state  # not where a published change differs
     whole = global_map if source is crop else drawing
     assert whole is not None
-    structure_u8, walls = _drawn_structure(source, same, whole=whole)
+    structure_u8, walls, box_rims = _drawn_structure(source, same, whole=whole)
     if source is not crop:
         structure_u8 |= _structure(crop, None).astype(np.uint8)
     state = resample(crop.state, crop_grid, grid)
@@ -438,16 +444,8 @@ def make_view(
     if walls is not None:
         raw = state
         states = np.where(walls, OCCUPIED, crop.state)
-        if not _saver_unknown(whole):
-            # A drawing with an unknown grey of its own: its grey boxes (labels, icons) are
-            # drawn and anti-aliased as its lines are; their rims, grown as the lines are,
-            # are theirs, not floor.
-            grow = round(_LINE_HALF_WALL_M / crop.resolution)
-            if grow > 0:
-                size = 2 * grow + 1
-                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-                boxes = cv2.dilate((crop.state == UNKNOWN).view(np.uint8), kernel) > 0
-                states = np.where(boxes & (states == FREE), UNKNOWN, states)
+        if box_rims is not None:
+            states[box_rims & (states == FREE)] = UNKNOWN
         state = resample(states.astype(np.uint8), crop_grid, grid)
     structure = resample(structure_u8, crop_grid, grid, fill=0).astype(bool)
     return GlobalView(grid, state, structure, wall_reach_m, raw)
@@ -466,10 +464,10 @@ def _saver_unknown(m: OccupancyMap) -> bool:
 
 def _drawn_structure(
     m: OccupancyMap, same: NDArray[np.bool_] | None, *, whole: OccupancyMap
-) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
-    """The alignment's walls of ``m`` (uint8 0/1, a crop of ``whole``), and the cells its
-    drawing makes walls for the differences (None if none), both only where ``same`` (when
-    given)."""
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
+    """The alignment's walls of ``m`` (uint8 0/1, a crop of ``whole``), the cells its
+    drawing makes walls for the differences, and the rims of a drawing's grey boxes (each
+    (H, W) bool, None if none), all only where ``same`` (when given)."""
     drawn = _drawn(m)
     if drawn is not None and same is not None:
         drawn &= same
@@ -478,14 +476,15 @@ def _drawn_structure(
     if same is not None:
         structure &= same | (m.state == OCCUPIED)
     walls = np.zeros(m.state.shape, bool)
+    box_rims = None
     if drawn is not None:
         # A drawing's walls are walls, for the differences as for the search: a wall drawn
         # and then seen gone is a removed one. Not its marks (a cross, a dot, a letter): the
         # lines that run at least a while. In a map whose unknown grey is map_saver's (a scan
         # whose walls came out grey passes for a drawing), only lines drawn lighter than that
-        # grey: darker ones are its grey walls, blurred and noisy, which the search uses but
-        # which no difference is measured against. A drawing with an unknown grey of its own
-        # (label boxes) was never through map_saver: every line is ink.
+        # grey: darker ones are its grey walls, measured against as any wall drawn grey is
+        # (below). A drawing with an unknown grey of its own (label boxes) was never through
+        # map_saver: every line is ink.
         _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
         longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
         long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
@@ -494,6 +493,12 @@ def _drawn_structure(
                 _median_ink(m, np.asarray(labels, np.int32), len(stats))
                 < _SAVER_UNKNOWN - _UNKNOWN_BAND
             )
+        else:
+            # Its grey boxes (labels, icons, in its unknown grey) are drawn as its lines are,
+            # their edges anti-aliased into cells read as free: what a box stands for reaches
+            # as far beyond its grey as a line's wall beyond its ink. Those cells are unknown
+            # for the differences (a face seen there is the box's), not floor.
+            box_rims = _grown(m.state == UNKNOWN, m.resolution) & (m.state == FREE)
         long_lines[0] = False
         walls |= long_lines[labels]
     # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls
@@ -505,18 +510,23 @@ def _drawn_structure(
         walls |= _grey_ridges(m, grey_walls)
     if same is not None:
         walls &= same
-    return structure.astype(np.uint8), (walls if walls.any() else None)
+        if box_rims is not None:
+            box_rims &= same
+    return structure.astype(np.uint8), (walls if walls.any() else None), box_rims
 
 
 def _grey_ridges(m: OccupancyMap, grey_walls: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """The cells of ``grey_walls`` on the ridge of the occupancy, where a wall drawn grey
-    stands: as dark as the darkest cell beside them but for ``_RIDGE_DROP`` (a blurred rim
-    gets lighter going out from it; a line drawn two pixels wide has both), not within two
-    cells of a black wall (whose grey rim they would be), in runs of at least a wall's
-    length (``_LINE_MIN_LENGTH_M``: not a mark, not scan noise)."""
+    """(H, W) bool: the cells of ``grey_walls`` (H, W) on the ridge of a line, where a wall
+    drawn grey stands. A cell on it is as dark as the darkest cell beside it but for
+    ``_RIDGE_DROP`` (a line drawn two pixels wide has two such cells across it), stands out
+    as a line (the top-hat over a few pixels, as for a drawing's lines: a gentle slope of
+    grey is none, however flat), is not within two cells of a black wall (whose grey rim or
+    second trace it would be), and lies in a run of at least a wall's length
+    (``_LINE_MIN_LENGTH_M``: not a mark, not scan noise)."""
     occ = m.occupancy
-    darkest = cv2.dilate(occ, np.ones((3, 3), np.uint8))
-    ridge = grey_walls & (occ.astype(np.int16) >= darkest.astype(np.int16) - _RIDGE_DROP)
+    darkest = cv2.dilate(occ, np.ones((3, 3), np.uint8))  # never lighter than the cell
+    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, _LINE_KERNEL)
+    ridge = grey_walls & ((darkest - occ) <= _RIDGE_DROP) & (hat >= _LINE_CONTRAST)
     black = (m.state == OCCUPIED).view(np.uint8)
     ridge &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(ridge.view(np.uint8), connectivity=8)

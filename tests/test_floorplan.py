@@ -113,7 +113,8 @@ def test_a_drawing_s_grey_boxes_are_grown_as_its_lines_are_not_a_scan_s_unknown(
     # A label box drawn in the drawing's own unknown grey, anti-aliased into a row each side
     # that the thresholds read as free: what stands there (the box, as thick as its lines'
     # walls) reaches over its rim, so a face seen there is the box, not a new obstacle. The
-    # view marks the rim unknown (never a difference), half a thin wall (0.08 m) deep.
+    # view marks the cells within half a thin wall of the box unknown (0.08 m: two cells at
+    # 0.05 m), never a difference.
     g = plan()
     g[69, 120:160] = g[90, 120:160] = 215  # the box's anti-aliased rims (read as free)
     m = drawing(g)
@@ -125,9 +126,9 @@ def test_a_drawing_s_grey_boxes_are_grown_as_its_lines_are_not_a_scan_s_unknown(
         ((c, r),) = np.rint(view.grid.to_pixel([[x, 6.0 - RES * (row + 0.5)]])).astype(int)
         return r, c
 
-    for row in (68, 69, 90, 91):  # the rims, and a cell beyond them (0.05 m < 0.08 m)
+    for row in (68, 69, 90, 91):  # the rims, and the cell beyond each
         assert view.state[at(7.0, row)] == UNKNOWN
-    for row in (66, 93):  # floor
+    for row in (67, 92):  # floor
         assert view.state[at(7.0, row)] == FREE
     # A scan (map_saver's unknown grey): its unknown is where no ray went, and the free cells
     # beside it are floor seen free.
@@ -137,6 +138,7 @@ def test_a_drawing_s_grey_boxes_are_grown_as_its_lines_are_not_a_scan_s_unknown(
     g[55:65, 60:140] = 205  # a patch never seen
     m = drawing(g)
     view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
+    assert view.raw_state is not None  # its grey walls are walls: it passed for a drawing
     assert view.state[at(5.0, 54)] == FREE and view.state[at(5.0, 65)] == FREE
 
 
@@ -264,8 +266,10 @@ def test_a_scan_s_grey_wall_is_a_wall_along_its_darkest_line_not_its_blurred_rim
     g[80, 20:180] = 120  # a thinner wall: only its line reads as one
     g[79, 20:180] = g[81, 20:180] = 220
     g[60, 50:58] = 120  # a grey mark 0.4 m long: no wall
-    g[30, 100:180] = 0  # a black wall with grey rims: the rims are not walls
-    g[29, 100:180] = g[31, 100:180] = 140
+    g[30, 100:180] = 0  # a black wall with a grey rim: not a wall ...
+    g[31, 100:180] = 140
+    g[28, 100:180] = 120  # ... nor its second trace, two cells off (a wall seen doubled)
+    g[29, 100:180] = 235
     m = drawing(g)
     local = from_states(np.full((40, 40), FREE, np.uint8), RES, (4.0, 1.0, 0.0))
     view = make_view(m, local, Transform2D(0.0, 0.0, 0.0), search_xy_m=3.0, margin_m=5.0)
@@ -280,7 +284,7 @@ def test_a_scan_s_grey_wall_is_a_wall_along_its_darkest_line_not_its_blurred_rim
         assert view.structure[at(5.0, row)] and view.state[at(5.0, row)] != OCCUPIED
     assert view.structure[at(2.7, 60)] and view.state[at(2.7, 60)] != OCCUPIED  # the mark
     assert view.state[at(7.0, 30)] == OCCUPIED
-    assert view.state[at(7.0, 29)] != OCCUPIED and view.state[at(7.0, 31)] != OCCUPIED
+    assert view.state[at(7.0, 31)] != OCCUPIED and view.state[at(7.0, 28)] != OCCUPIED
 
 
 def grey_hall(tmp_path: Path, gone_x: tuple[float, float]) -> Path:
@@ -351,7 +355,8 @@ def test_the_core_of_a_wall_drawn_grey_is_a_wall_for_the_differences_not_its_rim
         return r, c
 
     assert view.state[at(6.0 - 0.05 * 55)] == OCCUPIED  # the wall's middle
-    assert view.state[at(6.0 - 0.05 * 50.5)] == OCCUPIED  # its outer row of ink
+    edge = at(6.0 - 0.05 * 50.5)  # its outer row of ink: not a line of its own
+    assert view.structure[edge] and view.state[edge] != OCCUPIED  # the search's, no more
     assert view.state[at(6.0 - 0.05 * 49.5)] != OCCUPIED  # its anti-aliased rim
 
 
