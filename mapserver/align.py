@@ -260,15 +260,33 @@ def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
     if not enough:
         return None
     n_black = int(counts.occupied.sum())
-    black = (m.state == OCCUPIED).view(np.uint8)
-    # The top-hat: what an opening over a few pixels takes away.
-    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, _LINE_KERNEL)
-    lines = (hat >= _LINE_CONTRAST) & grey_levels[occ] & (m.state != OCCUPIED)
-    lines &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
+    lines = _line_cells(m) & grey_levels[occ]
     # A drawing has more clear line pixels than black cells (a scan, its walls black, fewer).
     if np.count_nonzero(lines & clearly[occ]) <= n_black:
         return None
     return _grown(lines, m.resolution)
+
+
+def _line_cells(m: OccupancyMap) -> NDArray[np.bool_]:
+    """(H, W) bool: the cells of ``m`` on a line: clearly darker (``_LINE_CONTRAST``) than what
+    lies beside them, by the top-hat (what an opening over a few pixels takes away), and not
+    within two cells of a black wall (its grey rim, or a second trace of it)."""
+    hat = cv2.morphologyEx(m.occupancy, cv2.MORPH_TOPHAT, _LINE_KERNEL)
+    near_black = cv2.dilate((m.state == OCCUPIED).view(np.uint8), _LINE_KERNEL) > 0
+    return np.asarray((hat >= _LINE_CONTRAST) & ~near_black)
+
+
+def _long_runs(
+    mask: NDArray[np.bool_], resolution: float
+) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
+    """The 8-connected runs of ``mask`` (H, W): their labels (H, W), 0 off them, and per label
+    whether the run's longer side reaches a wall's length (``_LINE_MIN_LENGTH_M``: not a mark,
+    not noise; False for label 0)."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    long = longest * resolution >= _LINE_MIN_LENGTH_M
+    long[0] = False
+    return np.asarray(labels, np.int32), long
 
 
 def _grown(mask: NDArray[np.bool_], resolution: float) -> NDArray[np.bool_]:
@@ -485,21 +503,15 @@ def _drawn_structure(
         # grey: darker ones are its grey walls, measured against as any wall drawn grey is
         # (below). A drawing with an unknown grey of its own (label boxes) was never through
         # map_saver: every line is ink.
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(drawn.view(np.uint8))
-        longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-        long_lines = longest * m.resolution >= _LINE_MIN_LENGTH_M
+        labels, long_lines = _long_runs(drawn, m.resolution)
         if _saver_unknown(whole):
-            long_lines &= (
-                _median_ink(m, np.asarray(labels, np.int32), len(stats))
-                < _SAVER_UNKNOWN - _UNKNOWN_BAND
-            )
+            long_lines &= _median_ink(m, labels, len(long_lines)) < _SAVER_UNKNOWN - _UNKNOWN_BAND
         else:
             # Its grey boxes (labels, icons, in its unknown grey) are drawn as its lines are,
             # their edges anti-aliased into cells read as free: what a box stands for reaches
             # as far beyond its grey as a line's wall beyond its ink. Those cells are unknown
             # for the differences (a face seen there is the box's), not floor.
             box_rims = _grown(m.state == UNKNOWN, m.resolution) & (m.state == FREE)
-        long_lines[0] = False
         walls |= long_lines[labels]
     # Walls drawn grey (darker than the unknown grey, read as unknown): their cores are walls
     # for the differences too, a wall drawn and seen gone is removed; not their blurred rims.
@@ -518,22 +530,15 @@ def _drawn_structure(
 def _grey_ridges(m: OccupancyMap, grey_walls: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """(H, W) bool: the cells of ``grey_walls`` (H, W) on the ridge of a line, where a wall
     drawn grey stands. A cell on it is as dark as the darkest cell beside it but for
-    ``_RIDGE_DROP`` (a line drawn two pixels wide has two such cells across it), stands out
-    as a line (the top-hat over a few pixels, as for a drawing's lines: a gentle slope of
-    grey is none, however flat), is not within two cells of a black wall (whose grey rim or
-    second trace it would be), and lies in a run of at least a wall's length
-    (``_LINE_MIN_LENGTH_M``: not a mark, not scan noise)."""
+    ``_RIDGE_DROP`` (a line drawn two pixels wide has two such cells across it), is on a line
+    as a drawing's are (:func:`_line_cells`: a gentle slope of grey is none, however flat; a
+    black wall's rim or second trace is none), and lies in a run of a wall's length
+    (:func:`_long_runs`: not a mark, not scan noise)."""
     occ = m.occupancy
     darkest = cv2.dilate(occ, np.ones((3, 3), np.uint8))  # never lighter than the cell
-    hat = cv2.morphologyEx(occ, cv2.MORPH_TOPHAT, _LINE_KERNEL)
-    ridge = grey_walls & ((darkest - occ) <= _RIDGE_DROP) & (hat >= _LINE_CONTRAST)
-    black = (m.state == OCCUPIED).view(np.uint8)
-    ridge &= ~(cv2.dilate(black, _LINE_KERNEL) > 0)
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(ridge.view(np.uint8), connectivity=8)
-    longest = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-    keep = longest * m.resolution >= _LINE_MIN_LENGTH_M
-    keep[0] = False
-    return np.asarray(keep[labels], dtype=bool)
+    ridge = grey_walls & ((darkest - occ) <= _RIDGE_DROP) & _line_cells(m)
+    labels, long = _long_runs(ridge, m.resolution)
+    return np.asarray(long[labels], dtype=bool)
 
 
 # How much lighter (0..255 occupancy) than the darkest cell beside it a cell on a grey wall's
