@@ -460,10 +460,16 @@ def another_pass_explains(
     the second pass's wall in open floor. Here the cells are taken back to the slam frame
     through the trusted piece most of them belong to, then put through the transform of every
     other aligned piece (``aligned``, trusted or left out of the chain: a chain break leaves
-    out pieces that are mostly right; not the piece's neighbours on the route, which meet it
-    within the chain's agreement) whose run came within ``reach_m`` of them and that puts them
-    ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
+    out pieces that are mostly right) whose run came within ``reach_m`` of them and that puts
+    them ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
     building (``fits``, per nav2 point), that pass saw them, and they are no change.
+
+    A piece next on the route meets this one at their junction, within the chain's agreement,
+    and counts only where its run came nearer to the cells than the piece's own: far from
+    the junction a small error in either one's heading grows to a metre, and the transform of
+    the run that saw the place from nearer is the better there (a 20 m lidar's piece draws a
+    hall's far wall 15 m from its run; the next piece drove along that wall and lays it on
+    the building, where the first lays it in the open).
 
     With ``open_there`` (per slam point: the local map open there), a pass does not explain
     them when ``share`` of the places its transform takes ``xy`` back to are open and its run
@@ -489,13 +495,14 @@ def another_pass_explains(
     _, owner, slam = best
     centre = slam.mean(axis=0, keepdims=True)
     limit_m = reach_m
+    own_m = float(np.hypot(*(owner.run - centre).T).min()) if len(owner.run) else math.inf
     if len(owner.run) and math.isfinite(near_ratio):
-        own_m = float(np.hypot(*(owner.run - centre).T).min())
         limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
     for q in pieces.pieces:
-        if not q.aligned or abs(q.index - owner.index) < 2 or len(q.run) < 2:
+        if not q.aligned or q.index == owner.index or len(q.run) < 2:
             continue
-        if float(np.hypot(*(q.run - centre).T).min()) > limit_m:
+        q_m = float(np.hypot(*(q.run - centre).T).min())
+        if q_m > limit_m or (abs(q.index - owner.index) == 1 and q_m >= own_m):
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue

@@ -805,7 +805,8 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     far = _fold_pieces(other_run_x=(25.0, 40.0))
     assert not piecewise.another_pass_explains(*far, xy, _wall_at_y(6.0))
     assert piecewise.another_pass_explains(*far, xy, _wall_at_y(6.0), reach_m=20.0)
-    # The piece next on the route meets this one within the chain's agreement: not a pass.
+    # The piece next on the route meets this one within the chain's agreement, and its run
+    # came farther from the cells than the piece's own: not a pass.
     assert not piecewise.another_pass_explains(*_fold_pieces(other_index=1), xy, _wall_at_y(6.0))
     # Two passes that put it only 0.3 m apart: the re-fit's business, not a fold.
     near = _fold_pieces(other_shift_m=0.3)
@@ -836,6 +837,22 @@ def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() 
     assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0)
     assert not piecewise.another_pass_explains(*close_own, xy, wall, reach_m=3.0, near_ratio=4.0)
     assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=5.0, near_ratio=4.0)
+
+
+def test_the_piece_next_on_the_route_explains_what_it_passed_nearer_than_the_piece_s_own() -> None:
+    """The cells at (7.5..8.5, 5) as above; the other piece is the next one on the route, its
+    run from (10, 5) on, 2 m from their centre. The piece's own run along y = 0.5, 4.5 m from
+    them: the next piece saw the place from nearer, its transform is the better there, and
+    through it they lie on the wall at y = 6. Its own run along y = 4, 1 m from them: the
+    piece's own transform is the better, and the next one's move says nothing."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    wall = _wall_at_y(6.0)
+    assert piecewise.another_pass_explains(*_fold_pieces(other_index=1, run_y=0.5), xy, wall)
+    assert not piecewise.another_pass_explains(*_fold_pieces(other_index=1, run_y=4.0), xy, wall)
+    # Not on a wall through the next piece's transform either: a change, wherever its run.
+    assert not piecewise.another_pass_explains(
+        *_fold_pieces(other_index=1, run_y=0.5), xy, _wall_at_y(7.0)
+    )
 
 
 def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
