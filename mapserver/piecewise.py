@@ -483,16 +483,10 @@ def another_pass_explains(
     piece's own run (both from their centre, in the slam frame; ``inf``, the default, or a
     piece without a run: no such limit).
     """
-    grid = Grid.of_map(local)
-    best: tuple[int, Piece, FloatArray] | None = None
-    for p in pieces.trusted:
-        at = p.nav2_from_slam.inverse().apply(xy)
-        n = int(np.count_nonzero(grid.sample(p.mask, at, False)))
-        if n and (best is None or n > best[0]):
-            best = (n, p, at)
-    if best is None:
+    owned = _owner(local, pieces, xy)
+    if owned is None:
         return False
-    _, owner, slam = best
+    owner, slam = owned
     centre = slam.mean(axis=0, keepdims=True)
     limit_m = reach_m
     own_m = float(np.hypot(*(owner.run - centre).T).min()) if len(owner.run) else math.inf
@@ -514,6 +508,54 @@ def another_pass_explains(
             if near and float(np.mean(open_there(back))) >= share:
                 continue
         return True
+    return False
+
+
+def _owner(local: OccupancyMap, pieces: Pieces, xy: FloatArray) -> tuple[Piece, FloatArray] | None:
+    """The trusted piece most of nav2 points ``xy`` (N, 2) belong to (through its transform
+    back into the slam frame, onto its cells), and those points in the slam frame; None when
+    no trusted piece holds any of them."""
+    grid = Grid.of_map(local)
+    best: tuple[int, Piece, FloatArray] | None = None
+    for p in pieces.trusted:
+        at = p.nav2_from_slam.inverse().apply(xy)
+        n = int(np.count_nonzero(grid.sample(p.mask, at, False)))
+        if n and (best is None or n > best[0]):
+            best = (n, p, at)
+    return None if best is None else (best[1], best[2])
+
+
+def left_out_pass_near(
+    local: OccupancyMap,
+    pieces: Pieces,
+    xy: FloatArray,
+    *,
+    ratio: float = 2.0,
+    reach_m: float = 12.0,
+) -> bool:
+    """Whether a piece left out of the comparison (not trusted: it did not align, or not in
+    agreement with the chain) came on its run within ``ratio`` times as near to nav2 points
+    ``xy`` (N, 2) as the trusted piece they belong to, and within ``reach_m``; distances from
+    their centre, in the slam frame.
+
+    The local map there may be that pass's drawing, in the frame of a transform that could not
+    be trusted: given to the trusted piece (the run nearest through free space), its open floor
+    lands on the building's walls.
+    """
+    owned = _owner(local, pieces, xy)
+    if owned is None:
+        return False
+    owner, slam = owned
+    if len(owner.run) == 0:
+        return False
+    centre = slam.mean(axis=0, keepdims=True)
+    own_m = float(np.hypot(*(owner.run - centre).T).min())
+    for q in pieces.pieces:
+        if q.trusted or len(q.run) < 2:
+            continue
+        q_m = float(np.hypot(*(q.run - centre).T).min())
+        if q_m <= reach_m and q_m < ratio * own_m:
+            return True
     return False
 
 
@@ -708,6 +750,7 @@ __all__ = [
     "label_cells",
     "lands_within",
     "largest_chain",
+    "left_out_pass_near",
     "route_nav2",
     "route_pieces",
     "seen_reach_m",

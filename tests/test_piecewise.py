@@ -855,6 +855,26 @@ def test_the_piece_next_on_the_route_explains_what_it_passed_nearer_than_the_pie
     )
 
 
+def test_a_place_a_left_out_pass_came_as_near_to_as_the_piece_s_own_may_be_its_drawing() -> None:
+    """Cells at (7.5..8.5, 5) of the west piece (trusted); the other piece did not align (left
+    out), its run from (10, 5) on, 2 m from their centre. The west piece's run 1.5 m from them
+    (y = 3.5): the left-out pass came within twice that, and the map there may be its drawing.
+    The west piece's run 0.5 m from them (y = 4.5): the robot saw the place from four times
+    nearer, and it is the trusted piece's."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    assert piecewise.left_out_pass_near(*_fold_pieces(other_score=0.4, run_y=3.5), xy)
+    assert not piecewise.left_out_pass_near(*_fold_pieces(other_score=0.4, run_y=4.5), xy)
+    assert piecewise.left_out_pass_near(*_fold_pieces(other_score=0.4, run_y=4.5), xy, ratio=5.0)
+    # Beyond the sensor's reach that pass drew nothing here.
+    far = _fold_pieces(other_score=0.4, run_y=3.5)
+    assert not piecewise.left_out_pass_near(*far, xy, reach_m=1.5)
+    # A trusted pass's drawing is in a frame the comparison carries: the fold checks' business.
+    assert not piecewise.left_out_pass_near(*_fold_pieces(other_score=0.9, run_y=3.5), xy)
+    # Cells no trusted piece holds: nothing to say.
+    off = np.column_stack([np.linspace(27.5, 28.5, 11), np.full(11, 5.0)])
+    assert not piecewise.left_out_pass_near(*_fold_pieces(other_score=0.4, run_y=3.5), off)
+
+
 def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
     """Removed cells at (7.5..8.5, 5): through the other pass's transform (1 m north) they
     land on open floor, as a fold's would. But had that pass seen the structure standing, it
