@@ -464,10 +464,11 @@ def another_pass_explains(
     them ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
     building (``fits``, per nav2 point), that pass saw them, and they are no change.
 
-    A piece next on the route meets this one at their junction, within the chain's agreement,
-    and counts only where its run came nearer to the cells than the piece's own: far from
-    the junction a small error in either one's heading grows to a metre, and the transform of
-    the run that saw the place from nearer is the better there (a 20 m lidar's piece draws a
+    A piece next on the route shares this one's junction, and two trusted neighbours meet there
+    within the chain's agreement; it counts only where its run came nearer to the cells than
+    the piece's own (never for a piece without a run): far from the junction a small error in
+    either one's heading grows to a metre, and the transform of the run that saw the place
+    from nearer is the better there (a 20 m lidar's piece draws a
     hall's far wall 15 m from its run; the next piece drove along that wall and lays it on
     the building, where the first lays it in the open).
 
@@ -489,14 +490,14 @@ def another_pass_explains(
     owner, slam = owned
     centre = slam.mean(axis=0, keepdims=True)
     limit_m = reach_m
-    own_m = float(np.hypot(*(owner.run - centre).T).min()) if len(owner.run) else math.inf
+    own_m = _run_distance_m(owner.run, centre) if len(owner.run) else math.inf
     if len(owner.run) and math.isfinite(near_ratio):
         limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
     for q in pieces.pieces:
         if not q.aligned or q.index == owner.index or len(q.run) < 2:
             continue
-        q_m = float(np.hypot(*(q.run - centre).T).min())
-        if q_m > limit_m or (abs(q.index - owner.index) == 1 and q_m >= own_m):
+        q_m = _run_distance_m(q.run, centre)
+        if q_m > limit_m or (abs(q.index - owner.index) == 1 and not q_m < own_m < math.inf):
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue
@@ -504,11 +505,16 @@ def another_pass_explains(
             continue
         if open_there is not None:
             back = q.nav2_from_slam.inverse().apply(xy)
-            near = float(np.hypot(*(q.run - back.mean(axis=0)).T).min()) <= reach_m
+            near = _run_distance_m(q.run, back.mean(axis=0, keepdims=True)) <= reach_m
             if near and float(np.mean(open_there(back))) >= share:
                 continue
         return True
     return False
+
+
+def _run_distance_m(run: FloatArray, point: FloatArray) -> float:
+    """How near (metres) a run (M, 2) came to ``point`` (1, 2): its nearest pose's distance."""
+    return float(np.hypot(*(run - point).T).min())
 
 
 def _owner(local: OccupancyMap, pieces: Pieces, xy: FloatArray) -> tuple[Piece, FloatArray] | None:
@@ -534,9 +540,11 @@ def left_out_pass_near(
     reach_m: float = 12.0,
 ) -> bool:
     """Whether a piece left out of the comparison (not trusted: it did not align, or not in
-    agreement with the chain) came on its run within ``ratio`` times as near to nav2 points
-    ``xy`` (N, 2) as the trusted piece they belong to, and within ``reach_m``; distances from
-    their centre, in the slam frame.
+    agreement with the chain) came on its run nearer to nav2 points ``xy`` (N, 2) than
+    ``ratio`` times the run of the trusted piece they belong to, and no farther than
+    ``reach_m``; distances from their centre, in the slam frame. A left-out neighbour on the
+    route shares the piece's junction, so near that junction it always does. False when no
+    trusted piece holds any of the points, or the one that does has no run.
 
     The local map there may be that pass's drawing, in the frame of a transform that could not
     be trusted: given to the trusted piece (the run nearest through free space), its open floor
@@ -549,11 +557,11 @@ def left_out_pass_near(
     if len(owner.run) == 0:
         return False
     centre = slam.mean(axis=0, keepdims=True)
-    own_m = float(np.hypot(*(owner.run - centre).T).min())
+    own_m = _run_distance_m(owner.run, centre)
     for q in pieces.pieces:
         if q.trusted or len(q.run) < 2:
             continue
-        q_m = float(np.hypot(*(q.run - centre).T).min())
+        q_m = _run_distance_m(q.run, centre)
         if q_m <= reach_m and q_m < ratio * own_m:
             return True
     return False

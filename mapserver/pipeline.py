@@ -601,7 +601,8 @@ _FLOOR_SEEN_SHARE = 0.95
 # Folds in general: what one pass saw, drawn by slam where another pass's piece lies, goes
 # through that piece's transform: a wall lands in open floor (a false "added" obstacle), open
 # floor on a block (a false "removed" one). It is a fold when the transform of a pass (an
-# aligned piece not next to it on the route, trusted or left out: a chain break leaves out
+# aligned piece, trusted or left out, not next to it on the route unless its run came nearer
+# to it than the piece's own: piecewise.another_pass_explains; a chain break leaves out
 # pieces that are mostly right, and the passes that fold onto the trusted ones are often
 # theirs) whose run came within the sensor's reach of it (piecewise.seen_reach_m: how far
 # from the route the local map saw anything, its lidar's range where views are long) and that
@@ -637,13 +638,15 @@ _FLOOR_SEEN_SHARE = 0.95
 # common indoor lidar's range: with it, every result.yaml of the 12 m sets is as before.
 _MIN_PASS_REACH_M = 12.0
 # A removed one, too, where a piece left out of the comparison (its transform not trusted: a
-# pass drift turned too far, or that found no fit) came on its run within _LEFT_OUT_NEAR_RATIO
-# times as near to it as the trusted piece its cells belong to: the map there may be that
+# pass drift turned too far, or that found no fit) came on its run no farther from it than
+# _LEFT_OUT_NEAR_RATIO times the run of the trusted piece its cells belong to (a left-out
+# neighbour on the route, which shares the piece's junction, always does near that junction;
+# the census counted those too): the map there may be that
 # pass's drawing (the cells went to the run nearest through free space), in a frame no
 # transform of ours carries, its open floor laid on the building's walls. Census over 22
 # drift sets (session 25, each reported difference with the runs of the pieces left out):
-# removed ones within twice the owner's distance, 13 false against 2 real; within three times,
-# 16 against 5; added ones within twice, 14 against 14 (a wall it drew where the building is
+# removed ones with a left-out run no farther than twice the owner's, 13 false against 2 real;
+# three times, 16 against 5; added ones at twice, 14 against 14 (a wall it drew where the building is
 # open is as often a real obstacle).
 _LEFT_OUT_NEAR_RATIO = 2.0
 _PASS_GAP_M = 0.5
@@ -747,8 +750,10 @@ def _refit(
     the place (``local``'s cells there seen on that pass, its run within the sensor's reach:
     a fold; for a removed one, unless that pass drew the structure's place open too), nor for
     a removed one the local walls around it seen free behind: most of them when it lies deep
-    in the structure, nearly all at any depth (a fold, :func:`_folded`). ``reach_m()``: how
-    far from its route the robot saw anything, asked when a fold check needs it."""
+    in the structure, nearly all at any depth (a fold, :func:`_folded`), nor for a removed one
+    a piece left out of the comparison whose run came near it (``_LEFT_OUT_NEAR_RATIO``: the
+    map there may be that pass's drawing). ``reach_m()``: how far from its route the robot saw
+    anything, asked when a fold check needs it."""
     d = config.pipeline.diff
     view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
     global_walls = view.structure | (view.state == OCCUPIED)
@@ -801,6 +806,7 @@ def _refit(
             return True
         if (
             diff.kind == "removed"
+            and aligned.in_pieces
             and aligned.pieces is not None
             and piecewise.left_out_pass_near(
                 local,

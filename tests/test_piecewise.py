@@ -849,6 +849,13 @@ def test_the_piece_next_on_the_route_explains_what_it_passed_nearer_than_the_pie
     wall = _wall_at_y(6.0)
     assert piecewise.another_pass_explains(*_fold_pieces(other_index=1, run_y=0.5), xy, wall)
     assert not piecewise.another_pass_explains(*_fold_pieces(other_index=1, run_y=4.0), xy, wall)
+    # A run as near as the piece's own: no nearer, the piece's transform stands.
+    assert not piecewise.another_pass_explains(*_fold_pieces(other_index=1, run_y=3.0), xy, wall)
+    # The piece without a run: nothing to compare with, and the neighbour is not asked.
+    local, pieces = _fold_pieces(other_index=1, run_y=0.5)
+    first, other = pieces.pieces
+    runless = piecewise.Pieces((dataclasses.replace(first, run=np.empty((0, 2))), other), 100.0)
+    assert not piecewise.another_pass_explains(local, runless, xy, wall)
     # Not on a wall through the next piece's transform either: a change, wherever its run.
     assert not piecewise.another_pass_explains(
         *_fold_pieces(other_index=1, run_y=0.5), xy, _wall_at_y(7.0)
@@ -868,8 +875,17 @@ def test_a_place_a_left_out_pass_came_as_near_to_as_the_piece_s_own_may_be_its_d
     # Beyond the sensor's reach that pass drew nothing here.
     far = _fold_pieces(other_score=0.4, run_y=3.5)
     assert not piecewise.left_out_pass_near(*far, xy, reach_m=1.5)
+    # A pass that aligned on its own but was left out of the chain (drift turned it past the
+    # chain's agreement) is left out too: no trusted transform carries its drawing.
+    local, weak = _fold_pieces(other_score=0.4, run_y=3.5)
+    first, other = weak.pieces
+    broke = piecewise.Pieces((first, dataclasses.replace(other, aligned=True)), 100.0)
+    assert piecewise.left_out_pass_near(local, broke, xy)
     # A trusted pass's drawing is in a frame the comparison carries: the fold checks' business.
     assert not piecewise.left_out_pass_near(*_fold_pieces(other_score=0.9, run_y=3.5), xy)
+    # The piece the cells belong to has no run to compare with.
+    runless = piecewise.Pieces((dataclasses.replace(first, run=np.empty((0, 2))), other), 100.0)
+    assert not piecewise.left_out_pass_near(local, runless, xy)
     # Cells no trusted piece holds: nothing to say.
     off = np.column_stack([np.linspace(27.5, 28.5, 11), np.full(11, 5.0)])
     assert not piecewise.left_out_pass_near(*_fold_pieces(other_score=0.4, run_y=3.5), off)
