@@ -468,9 +468,9 @@ def another_pass_explains(
     within the chain's agreement; it counts only where its run came nearer to the cells than
     the piece's own (never for a piece without a run): far from the junction a small error in
     either one's heading grows to a metre, and the transform of the run that saw the place
-    from nearer is the better there (a 20 m lidar's piece draws a
-    hall's far wall 15 m from its run; the next piece drove along that wall and lays it on
-    the building, where the first lays it in the open).
+    from nearer is the better there (a 20 m lidar's piece draws a hall's far wall 15 m from
+    its run; the next piece drove along that wall and lays it on the building, where the first
+    lays it in the open).
 
     With ``open_there`` (per slam point: the local map open there), a pass does not explain
     them when ``share`` of the places its transform takes ``xy`` back to are open and its run
@@ -491,7 +491,7 @@ def another_pass_explains(
     centre = slam.mean(axis=0, keepdims=True)
     limit_m = reach_m
     own_m = _run_distance_m(owner.run, centre) if len(owner.run) else math.inf
-    if len(owner.run) and math.isfinite(near_ratio):
+    if math.isfinite(own_m) and math.isfinite(near_ratio):
         limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
     for q in pieces.pieces:
         if not q.aligned or q.index == owner.index or len(q.run) < 2:

@@ -641,13 +641,13 @@ _MIN_PASS_REACH_M = 12.0
 # pass drift turned too far, or that found no fit) came on its run no farther from it than
 # _LEFT_OUT_NEAR_RATIO times the run of the trusted piece its cells belong to (a left-out
 # neighbour on the route, which shares the piece's junction, always does near that junction;
-# the census counted those too): the map there may be that
-# pass's drawing (the cells went to the run nearest through free space), in a frame no
-# transform of ours carries, its open floor laid on the building's walls. Census over 22
-# drift sets (session 25, each reported difference with the runs of the pieces left out):
-# removed ones with a left-out run no farther than twice the owner's, 13 false against 2 real;
-# three times, 16 against 5; added ones at twice, 14 against 14 (a wall it drew where the building is
-# open is as often a real obstacle).
+# the census counted those too): the map there may be that pass's drawing (the cells went to
+# the run nearest through free space), in a frame no transform of ours carries, its open
+# floor laid on the building's walls. Census over 22 drift sets (session 25, each reported
+# difference with the runs of the pieces left out): removed ones with a left-out run no
+# farther than twice the owner's, 13 false against 2 real; three times, 16 against 5; added
+# ones at twice, 14 against 14 (a wall it drew where the building is open is as often a real
+# obstacle).
 _LEFT_OUT_NEAR_RATIO = 2.0
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
@@ -800,23 +800,16 @@ def _refit(
             removed_tolerance_m=d.removed_tolerance_m,
         ):
             return True
-        if aligned.in_pieces and _seen_on_another_pass(
-            diff, aligned, local, config, near_wall, sensor_reach_m
-        ):
-            return True
-        if (
-            diff.kind == "removed"
-            and aligned.in_pieces
-            and aligned.pieces is not None
-            and piecewise.left_out_pass_near(
-                local,
-                aligned.pieces,
-                grid.to_world(diff.cells[:, ::-1].astype(float)),
-                ratio=_LEFT_OUT_NEAR_RATIO,
-                reach_m=sensor_reach_m(),
-            )
-        ):
-            return True
+        if aligned.in_pieces and aligned.pieces is not None:
+            xy = grid.to_world(diff.cells[:, ::-1].astype(float))
+            if _seen_on_another_pass(
+                diff, xy, aligned.pieces, aligned.view, local, config, near_wall, sensor_reach_m
+            ):
+                return True
+            if diff.kind == "removed" and piecewise.left_out_pass_near(
+                local, aligned.pieces, xy, ratio=_LEFT_OUT_NEAR_RATIO, reach_m=sensor_reach_m()
+            ):
+                return True
         return diff.kind == "added" and refit_stage.ghost_of_wall(
             diff.cells,
             added,
@@ -843,24 +836,24 @@ def _folded(faces: refit_stage.Faces, resolution: float) -> bool:
 
 def _seen_on_another_pass(
     diff: cluster_stage.Difference,
-    aligned: _Aligned,
+    xy: np.ndarray,
+    pieces: piecewise.Pieces,
+    view: align_stage.GlobalView,
     local: OccupancyMap,
     config: Config,
     near_wall: Callable[[np.ndarray, float], np.ndarray],
     reach_m: Callable[[], float],
 ) -> bool:
-    """Whether another pass of a route aligned in pieces, its run within ``reach_m()`` of
-    them (the sensor's), saw ``diff``'s cells as no change: an added one's on a global wall
-    (``near_wall(xy, distance)``: within twice the differences' tolerance for a line, within the
-    tolerance for one that spreads across itself, ``_FOLD_LINE_SPREAD_M``; that pass, past
-    half the reach, no more than ``_PASS_NEAR_RATIO`` times as far from them as the robot's
-    own run), a removed one's on the open floor (free, off every wall by twice the tolerance)
-    unless that pass drew the structure's place open too (:func:`_open_in`: both passes saw it
-    gone)."""
+    """Whether another pass of a route aligned in ``pieces``, its run within ``reach_m()`` of
+    them (the sensor's), saw ``diff``'s cells (at nav2 points ``xy``, (N, 2), on ``view``'s
+    grid) as no change: an added one's on a global wall (``near_wall(xy, distance)``: within
+    twice the differences' tolerance for a line, within the tolerance for one that spreads
+    across itself, ``_FOLD_LINE_SPREAD_M``; that pass, past half the reach, no more than
+    ``_PASS_NEAR_RATIO`` times as far from them as the robot's own run), a removed one's on
+    the open floor (free, off every wall by twice the tolerance) unless that pass drew the
+    structure's place open too (:func:`_open_in`: both passes saw it gone)."""
     assert diff.cells is not None
-    if aligned.pieces is None:
-        return False
-    grid, state = aligned.view.grid, aligned.view.state
+    grid, state = view.grid, view.state
 
     tolerance_m = config.pipeline.diff.tolerance_m
     # A pass's wall lands within twice the differences' tolerance (the drift left in its
@@ -883,8 +876,8 @@ def _seen_on_another_pass(
 
     return piecewise.another_pass_explains(
         local,
-        aligned.pieces,
-        grid.to_world(diff.cells[:, ::-1].astype(float)),
+        pieces,
+        xy,
         fits,
         reach_m=reach_m(),
         min_gap_m=_PASS_GAP_M,
