@@ -377,19 +377,35 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     order, each within ``agree_m`` of the one before where they meet (pieces that did not align
     are skipped, not breaks). A piece that found a wrong match jumps; drift does not: the
     pieces that agree with each other over most of the route are the right ones, whichever one
-    the prior anchored."""
-    chains: list[list[Piece]] = []
-    for piece in pieces:
-        if not piece.aligned:
-            continue
-        if chains and _gap(chains[-1][-1], piece) <= agree_m:
-            chains[-1].append(piece)
-        else:
-            chains.append([piece])
-    if not chains:
+    the prior anchored.
+
+    One aligned piece may be stepped over: the two on either side of it agree, measured at the
+    middle of its run (a piece a wrong match turned disagrees with both its neighbours, and
+    would otherwise cut a right route in two)."""
+    aligned = [p for p in pieces if p.aligned]
+    if not aligned:
         return set()
-    best = max(chains, key=lambda c: sum(p.area_m2 for p in c))
-    return {p.index for p in best}
+    # The heaviest path through the aligned pieces in route order: best[k], the area of the
+    # best chain that ends at aligned[k], and the piece before it there.
+    best: list[float] = []
+    before: list[int] = []
+    for k, piece in enumerate(aligned):
+        best.append(piece.area_m2)
+        before.append(-1)
+        if k >= 1 and _gap(aligned[k - 1], piece) <= agree_m:
+            best[k], before[k] = best[k - 1] + piece.area_m2, k - 1
+        if k >= 2:
+            run = aligned[k - 1].run
+            at = run[len(run) // 2][None] if len(run) else np.array([piece.junction])
+            gap = float(apart(aligned[k - 2].nav2_from_slam, piece.nav2_from_slam, at)[0])
+            if gap <= agree_m and best[k - 2] + piece.area_m2 > best[k]:
+                best[k], before[k] = best[k - 2] + piece.area_m2, k - 2
+    k = int(np.argmax(best))
+    chain: set[int] = set()
+    while k >= 0:
+        chain.add(aligned[k].index)
+        k = before[k]
+    return chain
 
 
 def _corners(local: OccupancyMap, piece: Piece) -> FloatArray | None:

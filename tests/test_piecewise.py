@@ -449,6 +449,32 @@ def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior
     assert piecewise.largest_chain([_piece(0, 0.0, score_ok=False)], agree_m=0.5) == set()
 
 
+def test_a_piece_turned_by_a_wrong_match_is_stepped_over_not_a_break_in_the_chain() -> None:
+    """Six pieces of a straight route east; piece 3 found a wrong match turned 4 degrees about
+    its start (its junction meets piece 2 within 0.15 m, its end lies 1.4 m off), so piece 4
+    does not meet it. Pieces 2 and 4 agree across it (at the middle of its run): 3 is left
+    out, the route either side is one chain (it was {0, 1, 2, 3}: 4 and 5 left out with the
+    outlier's fault). Two pieces out in a row are a break: the larger side wins."""
+    run = lambda i: np.array([[20.0 * i + s, 0.0] for s in (0.0, 10.0, 20.0)])  # noqa: E731
+
+    def piece(i: int, t: Transform2D, area: float = 100.0) -> piecewise.Piece:
+        return piecewise.Piece(
+            i, np.zeros((2, 2), bool), t, 0.9, False, area, (20.0 * i, 0.0), run(i), aligned=True
+        )
+
+    right = Transform2D(0.0, 0.05, 0.0)
+    wrong = _turn_about((60.0, 0.0), 4.0)
+    pieces = [piece(i, wrong if i == 3 else right) for i in range(6)]
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 4, 5}
+    # Without the two beyond it, stepping over 3 gains nothing: the chain keeps it.
+    assert piecewise.largest_chain(pieces[:4], agree_m=0.5) == {0, 1, 2, 3}
+    # Two wrong in a row (3 and 4, 1.5 m off): two chains, the larger by area wins.
+    off = Transform2D(0.0, 1.5, 0.0)
+    pieces = [piece(0, right), piece(1, right), piece(2, right), piece(3, off), piece(4, off, 50.0)]
+    pieces += [piece(5, right, 200.0), piece(6, right, 200.0)]
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {5, 6}
+
+
 def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
     """Piece ``i`` of a straight route east along y = 0, 20 m each (its run's start, middle and
     end), carried by ``t``; one left out scores 0.3."""
