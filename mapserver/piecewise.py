@@ -330,7 +330,9 @@ def grow_chain(
     ``0`` its start growing forwards) and joins when it aligns, meets the end within
     ``agree_m`` and turns no more than ``max_turn_rad`` from the heading the chain's drift
     predicts for it (:func:`heading_trend`: turned about the point where it meets the end, a
-    wrong match meets it too); it then becomes the end. One piece that does not join is
+    wrong match meets it too); it then becomes the end. Aligned again, a piece can take a
+    wrong match the first alignment (from the route's later pieces) did not: when only its
+    first fit passes those tests, it joins with that one. One piece that does not join is
     stepped over (a piece with too few walls, a stretch of clutter); the next is then measured
     against the end at the middle of the stepped-over run, not where it starts (a route's drift
     turns the two transforms apart over the run between them). Two in a row stop the growth.
@@ -342,23 +344,41 @@ def grow_chain(
         over: list[int] = []
         i = end + step
         while 0 <= i < len(out) and len(over) < 2:
-            piece = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
             if over:
                 run = np.concatenate([out[j].run for j in over])
                 at = run[len(run) // 2][None]
             else:  # where the later of the two starts
                 at = np.array([out[max(i, end)].junction])
-            gap = float(apart(piece.nav2_from_slam, out[end].nav2_from_slam, at)[0])
             # The chain's pieces in growth order, its end last.
-            grown = [out[j] for j in sorted(chain, reverse=step < 0)]
-            turn = abs(wrap_angle(piece.nav2_from_slam.theta - heading_trend(grown, i)))
-            if piece.aligned and gap <= agree_m and turn <= max_turn_rad:
-                out[i], end, over = piece, i, []
+            trend = heading_trend([out[j] for j in sorted(chain, reverse=step < 0)], i)
+            again = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
+            # Aligned again from the end first, then its first fit.
+            ok = [
+                p for p in (again, out[i]) if _joins(p, out[end], at, trend, agree_m, max_turn_rad)
+            ]
+            if ok:
+                out[i], end, over = ok[0], i, []
                 chain.add(i)
             else:
                 over.append(i)
             i += step
     return out, chain
+
+
+def _joins(
+    piece: Piece,
+    end: Piece,
+    at: FloatArray,
+    trend: float,
+    agree_m: float,
+    max_turn_rad: float,
+) -> bool:
+    """Whether ``piece`` joins a chain that ends in ``end``: it aligned, the two transforms put
+    ``at`` (1, 2) within ``agree_m`` of each other, and its heading lies within ``max_turn_rad``
+    of ``trend``, the heading the chain predicts for it."""
+    gap = float(apart(piece.nav2_from_slam, end.nav2_from_slam, at)[0])
+    turn = abs(wrap_angle(piece.nav2_from_slam.theta - trend))
+    return piece.aligned and gap <= agree_m and turn <= max_turn_rad
 
 
 def apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:

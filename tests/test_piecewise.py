@@ -533,6 +533,27 @@ def test_the_chain_grows_with_pieces_aligned_again_from_its_ends() -> None:
     assert piecewise.apart(still, refits[5][0], np.array([[100.0, 0.0]]))[0] > 0.5
 
 
+def test_a_piece_whose_alignment_again_took_a_wrong_match_joins_with_its_first_fit() -> None:
+    """A route east whose drift turns each 20 m piece 1 degree more than the last. The chain
+    is pieces 0-3; piece 4, aligned again from piece 3, takes a wrong match 2 m to the side,
+    but its first fit (from the route's later pieces) is the drifted truth: it joins with that
+    one, and piece 5 (whose alignment again is right) joins after it. A first fit that is
+    wrong too leaves the piece stepped over, as before."""
+    truth = _drifted(6, 1.0)
+    wrong = Transform2D(truth[4].theta, truth[4].tx, truth[4].ty + 2.0)
+
+    def fit(i: int, start: Transform2D, pivot_at: int) -> piecewise.Piece:
+        return _on_route(i, wrong if i == 4 else truth[i])
+
+    pieces = [_on_route(i, truth[i]) for i in range(6)]
+    grown, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
+    assert chain == {0, 1, 2, 3, 4, 5}
+    assert grown[4].nav2_from_slam == truth[4]
+    pieces[4] = _on_route(4, Transform2D(truth[4].theta, truth[4].tx, truth[4].ty - 2.0))
+    grown, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
+    assert chain == {0, 1, 2, 3, 5} and grown[4] == pieces[4]
+
+
 def test_a_piece_turned_off_the_chain_s_drift_does_not_join_it() -> None:
     """A route east along y = 0 in 20 m pieces whose drift turns each one 1.5 degrees more
     than the last, about where it meets the one before (so neighbours meet exactly). Piece 4,
