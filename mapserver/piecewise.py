@@ -7,8 +7,9 @@ the piece of the route nearest to it through free space: the one that saw it), a
 is aligned on its own, starting from its neighbour's transform (drift grows slowly along the
 route) and, for the first, from the whole-map transform. The trusted pieces are the largest
 chain of pieces that align on their own (a score of at least ``min_score``, or under it on the
-structure that did not change) and agree with each other where they meet. Only trusted pieces
-are compared.
+structure that did not change) and agree with each other where they meet (or across a piece
+between them that does not), grown outwards along the route. Only trusted pieces are
+compared.
 
 Pure functions on arrays; ``[row, col]`` indexing throughout, row 0 at the top.
 """
@@ -219,11 +220,12 @@ def align_pieces(
 
     The trusted pieces are the largest (by area) chain of aligned pieces that agree with each
     other: where each meets the one before it in the chain, the two transforms put that point
-    within ``agree_m`` of each other. A piece that found a wrong match jumps; drift does not.
-    Not the chain that holds the last piece: when the prior is off and the last piece took a
-    wrong match (repeated rooms), the rest of the route, consistent with itself, was left out
-    with it. The chain then grows outwards with the pieces beyond it aligned again from its
-    ends (:func:`grow_chain`). ``view`` must cover where the pieces land.
+    within ``agree_m`` of each other, or across one piece between them left out
+    (:func:`largest_chain`). A piece that found a wrong match jumps; drift does not. Not the
+    chain that holds the last piece: when the prior is off and the last piece took a wrong
+    match (repeated rooms), the rest of the route, consistent with itself, was left out with
+    it. The chain then grows outwards with the pieces beyond it aligned again from its ends
+    (:func:`grow_chain`). ``view`` must cover where the pieces land.
 
     With ``anchored``, the last piece (aligned first) must satisfy it, else None: nothing more
     is aligned.
@@ -320,8 +322,8 @@ def grow_chain(
     agree_m: float,
     max_turn_rad: float = _MAX_TURN_RAD,
 ) -> tuple[list[Piece], set[int]]:
-    """The chain of piece indices ``chain`` grown outwards along the route, with the pieces
-    that joined it aligned again.
+    """The chain of piece indices ``chain`` grown outwards along the route, and the pieces
+    with those that joined it as they joined (aligned again, or their first fit).
 
     The pieces beyond the chain's ends were aligned from whatever piece came after them on the
     route, a wrong match among them too; the chain's end piece is the better start. Each piece
@@ -354,7 +356,9 @@ def grow_chain(
             again = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
             # Aligned again from the end first, then its first fit.
             ok = [
-                p for p in (again, out[i]) if _joins(p, out[end], at, trend, agree_m, max_turn_rad)
+                p
+                for p in (again, pieces[i])
+                if _joins(p, out[end], at, trend, agree_m, max_turn_rad)
             ]
             if ok:
                 out[i], end, over = ok[0], i, []
@@ -393,15 +397,18 @@ def _gap(a: Piece, b: Piece) -> float:
 
 
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
-    """The indices of the largest (by area) run of aligned pieces (``Piece.aligned``), in route
-    order, each within ``agree_m`` of the one before where they meet (pieces that did not align
-    are skipped, not breaks). A piece that found a wrong match jumps; drift does not: the
-    pieces that agree with each other over most of the route are the right ones, whichever one
-    the prior anchored.
+    """The indices of the largest (by total area) chain of aligned pieces (``Piece.aligned``),
+    in route order, each within ``agree_m`` of the one before where they meet (pieces that did
+    not align are skipped, not breaks). A piece that found a wrong match jumps; drift does not:
+    the pieces that agree with each other over most of the route are the right ones, whichever
+    one the prior anchored.
 
-    One aligned piece may be stepped over: the two on either side of it agree, measured at the
-    middle of its run (a piece a wrong match turned disagrees with both its neighbours, and
-    would otherwise cut a right route in two)."""
+    A chain may also step over an aligned piece, never two in a row: the pieces on either side
+    of it agree at the middle pose of the runs between them (the stepped-over piece's and any
+    that did not align; the later piece's junction when those runs are empty). A piece a wrong
+    match turned about one of its ends meets that neighbour and not the other, and would
+    otherwise cut a right route in two. Stepping over only wins where it makes the chain
+    heavier, so a route whose pieces all agree keeps every one of them."""
     aligned = [p for p in pieces if p.aligned]
     if not aligned:
         return set()
@@ -415,8 +422,10 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
         if k >= 1 and _gap(aligned[k - 1], piece) <= agree_m:
             best[k], before[k] = best[k - 1] + piece.area_m2, k - 1
         if k >= 2:
-            run = aligned[k - 1].run
-            at = run[len(run) // 2][None] if len(run) else np.array([piece.junction])
+            first = aligned[k - 2].index
+            runs = [q.run for q in pieces if first < q.index < piece.index and len(q.run)]
+            run = np.concatenate(runs) if runs else None
+            at = run[len(run) // 2][None] if run is not None else np.array([piece.junction])
             gap = float(apart(aligned[k - 2].nav2_from_slam, piece.nav2_from_slam, at)[0])
             if gap <= agree_m and best[k - 2] + piece.area_m2 > best[k]:
                 best[k], before[k] = best[k - 2] + piece.area_m2, k - 2

@@ -451,7 +451,7 @@ def test_the_largest_chain_of_pieces_that_agree_is_trusted_not_the_one_the_prior
 
 def test_a_piece_turned_by_a_wrong_match_is_stepped_over_not_a_break_in_the_chain() -> None:
     """Six pieces of a straight route east; piece 3 found a wrong match turned 4 degrees about
-    its start (its junction meets piece 2 within 0.15 m, its end lies 1.4 m off), so piece 4
+    its start (its junction meets piece 2 within 0.05 m, its end lies 1.4 m off), so piece 4
     does not meet it. Pieces 2 and 4 agree across it (at the middle of its run): 3 is left
     out, the route either side is one chain (it was {0, 1, 2, 3}: 4 and 5 left out with the
     outlier's fault). Two pieces out in a row are a break: the larger side wins."""
@@ -473,6 +473,34 @@ def test_a_piece_turned_by_a_wrong_match_is_stepped_over_not_a_break_in_the_chai
     pieces = [piece(0, right), piece(1, right), piece(2, right), piece(3, off), piece(4, off, 50.0)]
     pieces += [piece(5, right, 200.0), piece(6, right, 200.0)]
     assert piecewise.largest_chain(pieces, agree_m=0.5) == {5, 6}
+
+
+def test_a_stepped_over_piece_is_measured_across_at_the_middle_of_its_run() -> None:
+    """A route whose drift turns each 20 m piece 2 degrees more than the last (neighbours meet
+    exactly). Piece 3, a wrong match turned 5 degrees more about its end, meets piece 4 there
+    and lies 1.7 m off piece 2 where they join. Pieces 2 and 4 meet at the middle of 3's run
+    (their turns about 3's two ends cancel there) but lie 0.7 m apart where 4 starts, and
+    1.0 m at the middle of 2's own run: measured across the stepped-over run, the chain steps
+    over 3 and holds the rest (before, 3-5 was the heavier chain and 0-2 was left out). An
+    unaligned piece beside it widens the stretch measured across: 2 and 5 meet at the middle
+    of 3's and 4's runs."""
+    truth = _drifted(6, 2.0)
+    wrong = truth[3].compose(_turn_about((80.0, 0.0), -5.0))
+    pieces = [_on_route(i, wrong if i == 3 else truth[i]) for i in range(6)]
+    pieces[5] = dataclasses.replace(pieces[5], area_m2=150.0)
+    at = {"middle of 3": (70.0, 0.0), "start of 4": (80.0, 0.0), "middle of 2": (50.0, 0.0)}
+    gaps = {k: piecewise.apart(truth[2], truth[4], np.array([v]))[0] for k, v in at.items()}
+    assert gaps["middle of 3"] < 0.05 and gaps["start of 4"] > 0.5 and gaps["middle of 2"] > 0.5
+    assert piecewise.apart(wrong, truth[2], np.array([[60.0, 0.0]]))[0] > 1.5
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 4, 5}
+    # 3 wrong and 4 unaligned: 2 and 5 measured at the middle of 3's and 4's runs, (80, 0).
+    truth = _drifted(7, 2.0)
+    pieces = [_on_route(i, truth[i]) for i in range(7)]
+    pieces[3] = _on_route(3, truth[3].compose(_turn_about((80.0, 0.0), -5.0)))
+    pieces[4] = _on_route(4, Transform2D(0.0, 5.0, 0.0), trusted=False)
+    assert piecewise.apart(truth[2], truth[5], np.array([[80.0, 0.0]]))[0] < 0.05
+    assert piecewise.apart(truth[2], truth[5], np.array([[70.0, 0.0]]))[0] > 0.5
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 5, 6}
 
 
 def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
@@ -538,7 +566,8 @@ def test_a_piece_whose_alignment_again_took_a_wrong_match_joins_with_its_first_f
     is pieces 0-3; piece 4, aligned again from piece 3, takes a wrong match 2 m to the side,
     but its first fit (from the route's later pieces) is the drifted truth: it joins with that
     one, and piece 5 (whose alignment again is right) joins after it. A first fit that is
-    wrong too leaves the piece stepped over, as before."""
+    wrong too (2 m off, or meeting the end but turned off the drift's trend) leaves the piece
+    stepped over, as before; when both are right, the alignment again is taken."""
     truth = _drifted(6, 1.0)
     wrong = Transform2D(truth[4].theta, truth[4].tx, truth[4].ty + 2.0)
 
@@ -552,6 +581,17 @@ def test_a_piece_whose_alignment_again_took_a_wrong_match_joins_with_its_first_f
     pieces[4] = _on_route(4, Transform2D(truth[4].theta, truth[4].tx, truth[4].ty - 2.0))
     grown, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
     assert chain == {0, 1, 2, 3, 5} and grown[4] == pieces[4]
+    # A first fit that meets the end but turns 8 degrees off the drift's trend: stepped over.
+    pieces[4] = _on_route(4, truth[4].compose(_turn_about((80.0, 0.0), 8.0)))
+    assert piecewise.apart(pieces[4].nav2_from_slam, truth[3], np.array([[80.0, 0.0]]))[0] < 0.01
+    grown, chain = piecewise.grow_chain(pieces, {0, 1, 2, 3}, fit, agree_m=0.5)
+    assert chain == {0, 1, 2, 3, 5} and grown[4] == pieces[4]
+    # Both right: the alignment again (from the chain's end) is taken.
+    pieces[4] = _on_route(4, Transform2D(truth[4].theta, truth[4].tx, truth[4].ty + 0.1))
+    grown, chain = piecewise.grow_chain(
+        pieces, {0, 1, 2, 3}, lambda i, t, at: _on_route(i, truth[i]), 0.5
+    )
+    assert chain == {0, 1, 2, 3, 4, 5} and grown[4].nav2_from_slam == truth[4]
 
 
 def test_a_piece_turned_off_the_chain_s_drift_does_not_join_it() -> None:
