@@ -346,11 +346,7 @@ def grow_chain(
         over: list[int] = []
         i = end + step
         while 0 <= i < len(out) and len(over) < 2:
-            if over:
-                run = np.concatenate([out[j].run for j in over])
-                at = run[len(run) // 2][None]
-            else:  # where the later of the two starts
-                at = np.array([out[max(i, end)].junction])
+            at = _measured_at([out[j] for j in over], out[max(i, end)])
             # The chain's pieces in growth order, its end last.
             trend = heading_trend([out[j] for j in sorted(chain, reverse=step < 0)], i)
             again = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
@@ -369,6 +365,17 @@ def grow_chain(
     return out, chain
 
 
+def _measured_at(between: Sequence[Piece], later: Piece) -> FloatArray:
+    """(1, 2) slam metres: where two pieces of a route are measured against each other, the
+    middle pose of the runs of the pieces ``between`` them (drift turns two transforms apart
+    over the run between them), or where the ``later`` one starts when those runs are empty."""
+    runs = [p.run for p in between if len(p.run)]
+    if not runs:
+        return np.array([later.junction])
+    run = np.concatenate(runs)
+    return np.asarray(run[len(run) // 2][None], dtype=float)
+
+
 def _joins(
     piece: Piece,
     end: Piece,
@@ -380,9 +387,11 @@ def _joins(
     """Whether ``piece`` joins a chain that ends in ``end``: it aligned, the two transforms put
     ``at`` (1, 2) within ``agree_m`` of each other, and its heading lies within ``max_turn_rad``
     of ``trend``, the heading the chain predicts for it."""
+    if not piece.aligned:
+        return False
     gap = float(apart(piece.nav2_from_slam, end.nav2_from_slam, at)[0])
     turn = abs(wrap_angle(piece.nav2_from_slam.theta - trend))
-    return piece.aligned and gap <= agree_m and turn <= max_turn_rad
+    return gap <= agree_m and turn <= max_turn_rad
 
 
 def apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
@@ -423,9 +432,7 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
             best[k], before[k] = best[k - 1] + piece.area_m2, k - 1
         if k >= 2:
             first = aligned[k - 2].index
-            runs = [q.run for q in pieces if first < q.index < piece.index and len(q.run)]
-            run = np.concatenate(runs) if runs else None
-            at = run[len(run) // 2][None] if run is not None else np.array([piece.junction])
+            at = _measured_at([q for q in pieces if first < q.index < piece.index], piece)
             gap = float(apart(aligned[k - 2].nav2_from_slam, piece.nav2_from_slam, at)[0])
             if gap <= agree_m and best[k - 2] + piece.area_m2 > best[k]:
                 best[k], before[k] = best[k - 2] + piece.area_m2, k - 2
