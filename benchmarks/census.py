@@ -15,7 +15,8 @@ gets the stage that lost it:
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
-  ``pipeline._refit`` asks them (``floor``, ``faces``, ``refit``, ``pass``, ``ghost``);
+  ``pipeline._refit`` asks them (``floor``, ``faces``, ``refit``, ``pass``, ``left out``,
+  ``ghost``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
@@ -58,7 +59,7 @@ from numpy.typing import NDArray
 
 from mapserver import cluster as cluster_stage
 from mapserver import diff as diff_stage
-from mapserver import pipeline
+from mapserver import piecewise, pipeline
 from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
 from mapserver.errors import MapserverError
@@ -75,7 +76,9 @@ from mapserver.scoring import (
 )
 
 # The re-fit's checks (pipeline._refit, in its order): the function, and whether its value
-# explains a difference away (its keyword arguments at hand).
+# explains a difference away (its keyword arguments at hand). Each is given the difference's
+# cells (or the difference) first, but ``left out``, which is given its cells' nav2 points
+# third (``_POINTS_AT``).
 _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]] = {
     "floor": (
         refit_stage,
@@ -89,9 +92,12 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     ),
     "refit": (refit_stage, "explained_by_refit", lambda value, _: bool(value)),
     "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),
+    "left out": (piecewise, "left_out_pass_near", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
 }
 CHECKS = tuple(_CHECKS)
+# The checks given a difference's cells as nav2 points, and where among their arguments.
+_POINTS_AT = {"left out": 2}
 # Every function observed: (module, name).
 OBSERVED = (
     (pipeline, "_diff"),
@@ -133,11 +139,23 @@ class Trace:
     paused: bool = False
 
     def of(self, difference: cluster_stage.Difference) -> list[Verdict]:
-        return self.verdicts.get(_key(difference.cells), []) if difference.cells is not None else []
+        """The verdicts on ``difference``, in the order the re-fit asked them: those recorded
+        on its cells and on their nav2 points (on this trace's grid)."""
+        if difference.cells is None:
+            return []
+        verdicts = list(self.verdicts.get(_key(difference.cells), []))
+        if self.grid is not None:
+            verdicts += self.verdicts.get(_key(_points(self.grid, difference.cells)), [])
+        return sorted(verdicts, key=lambda v: CHECKS.index(v.check))
 
 
-def _key(cells: NDArray[np.intp]) -> bytes:
+def _key(cells: NDArray[Any]) -> bytes:
     return np.ascontiguousarray(cells).tobytes()
+
+
+def _points(grid: Grid, cells: NDArray[np.intp]) -> NDArray[np.float64]:
+    """A difference's cells as nav2 points, as ``pipeline._refit`` makes them."""
+    return grid.to_world(cells[:, ::-1].astype(float))
 
 
 @contextmanager
@@ -178,12 +196,16 @@ def observing(trace: Trace) -> Iterator[Trace]:
         name: str, function: Callable[..., Any], verdict: Callable[[Any, dict[str, Any]], bool]
     ) -> Callable[..., Any]:
         """``function``, the re-fit check ``name``, recording its verdict on the cells it was
-        given (its first argument, or that difference's cells)."""
+        given (its first argument, that difference's cells, or the nav2 points
+        ``_POINTS_AT`` says)."""
 
         def observed(first: Any, *args: Any, **kwargs: Any) -> Any:
             value = function(first, *args, **kwargs)
             if not trace.paused:
-                cells = first if isinstance(first, np.ndarray) else first.cells
+                if name in _POINTS_AT:
+                    cells = (first, *args)[_POINTS_AT[name]]
+                else:
+                    cells = first if isinstance(first, np.ndarray) else first.cells
                 trace.verdicts.setdefault(_key(cells), []).append(
                     Verdict(name, verdict(value, kwargs), _shown(value))
                 )

@@ -16,7 +16,7 @@ import yaml
 from bench_support import benchmark_module
 
 from mapserver import cluster as cluster_stage
-from mapserver import pipeline, synth
+from mapserver import piecewise, pipeline, synth
 from mapserver import refit as refit_stage
 from mapserver.cluster import Difference
 from mapserver.config import load_config
@@ -252,6 +252,32 @@ def test_the_observers_record_each_checks_verdict_and_are_undone_whatever_happen
         ("faces", False, f"depth {faces.depth_m:.2f} m, walls 0, behind {faces.behind_share:.2f}"),
     ]
     assert all(getattr(m, n) is f for (m, n), f in originals.items())
+
+
+def test_a_removal_a_left_out_piece_explains_is_judged_by_that_check_in_the_refits_order(
+    census: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The left-out check is given the difference's cells as nav2 points, not the cells: its
+    # verdict is found from them, after the checks asked before it (session 27: the census
+    # called such a miss "reported", a cluster that survived, though the re-fit dropped it).
+    grid = Grid(-1.0, 2.0, 0.05, 40, 40)
+    cells = np.array([[3, 4], [3, 5], [4, 4]])
+    difference = _difference("removed", cells)
+    monkeypatch.setattr(piecewise, "left_out_pass_near", lambda *args, **kwargs: True)
+    trace = census.Trace(grid=grid)
+    with census.observing(trace):
+        xy = grid.to_world(cells[:, ::-1].astype(float))
+        assert piecewise.left_out_pass_near(None, None, xy, ratio=2.0, reach_m=12.0)
+        refit_stage.floor_seen_share(
+            cells,
+            np.full((40, 40), OCCUPIED, np.uint8),
+            np.full((40, 40), FREE, np.uint8),
+            resolution=0.05,
+        )
+
+    verdicts = trace.of(difference)
+    assert [(v.check, v.explained) for v in verdicts] == [("floor", False), ("left out", True)]
+    assert census.decided(verdicts) == "left out"
 
 
 def _difference(kind: str, cells: np.ndarray) -> Difference:
