@@ -11,7 +11,9 @@ gets the stage that lost it:
 
 * ``not compared``: the bundle failed, or its alignment was not trusted;
 * ``no difference``: no cell of it in the raw difference mask (not seen in the aligned local
-  map, or within a tolerance of the global map);
+  map, or within a tolerance of the global map); each miss says how many of its polygon's
+  cells the aligned local map knows (``seen``) and how many lie where a part of the map was
+  left out of the comparison (``left out``: an untrusted piece, a region off the building);
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
@@ -64,6 +66,7 @@ from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
 from mapserver.errors import MapserverError
 from mapserver.grid import Grid, box_of_cells
+from mapserver.maps import UNKNOWN
 from mapserver.outbox import RESULT
 from mapserver.scoring import (
     Change,
@@ -129,6 +132,9 @@ class Trace:
 
     compared: bool = False
     grid: Grid | None = None
+    # The aligned local map as compared, and the cells left out of the comparison (None: none).
+    local_state: NDArray[np.uint8] | None = None
+    left_out: NDArray[np.bool_] | None = None
     raw: diff_stage.DiffMasks | None = None
     masks: diff_stage.DiffMasks | None = None
     evidence: NDArray[np.bool_] | None = None
@@ -168,6 +174,7 @@ def observing(trace: Trace) -> Iterator[Trace]:
         masks, evidence = originals[(pipeline, "_diff")](aligned, *args, **kwargs)
         trace.compared = bool(aligned.compared)
         trace.grid, trace.masks, trace.evidence = aligned.view.grid, masks, evidence
+        trace.local_state, trace.left_out = aligned.local_state, aligned.left_out
         return masks, evidence
 
     def observed_raw(*args: Any, **kwargs: Any) -> Any:
@@ -294,6 +301,18 @@ def _verdicts_text(verdicts: list[Verdict]) -> str:
     return ", ".join(f"{v.check} {v.shown}{' EXPLAINED' if v.explained else ''}" for v in verdicts)
 
 
+def _seen_text(trace: Trace, box: tuple[slice, slice], inside: NDArray[np.bool_]) -> str:
+    """Of a polygon's cells (``inside`` on ``box``), how many the aligned local map knows
+    and how many were left out of the comparison (an untrusted piece, a region off the
+    building): a change nothing shows was unseen, or seen where the comparison could not go."""
+    parts = []
+    if trace.local_state is not None:
+        parts.append(f"seen {int((inside & (trace.local_state[box] != UNKNOWN)).sum())}")
+    if trace.left_out is not None:
+        parts.append(f"left out {int((inside & trace.left_out[box]).sum())}")
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def miss_line(change: Change, trace: Trace | None) -> tuple[str, str]:
     """The stage that lost ``change`` (one of ``STAGES``) and a line that says what each stage
     held of it (``trace`` None: the bundle failed)."""
@@ -308,7 +327,8 @@ def miss_line(change: Change, trace: Trace | None) -> tuple[str, str]:
     box, inside, grown = polygon_cells(trace.grid, change, GROW_PX)
     raw = grown & getattr(trace.raw, change.kind)[box]
     mask = grown & getattr(trace.masks, change.kind)[box]
-    line = f"{head}: polygon {int(inside.sum())} cells, raw {int(raw.sum())}, mask "
+    line = f"{head}: polygon {int(inside.sum())} cells{_seen_text(trace, box, inside)}, "
+    line += f"raw {int(raw.sum())}, mask "
     line += f"{int(mask.sum())}"
     if change.kind == "removed" and trace.evidence is not None:
         line += f", evidence {int((trace.evidence[box] & mask).sum())}"

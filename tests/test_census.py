@@ -321,6 +321,34 @@ def test_each_miss_is_put_at_the_stage_that_lost_it(census: ModuleType, stage: s
         assert f"raw {int(order.index(stage) > 1) * len(cells)}," in line
 
 
+def test_a_miss_says_how_much_of_it_the_local_map_saw_and_how_much_was_left_out(
+    census: ModuleType,
+) -> None:
+    grid = Grid(0.0, 0.0, 0.05, 40, 40)
+    change = Change(7, "removed", np.array([[0.5, 0.5], [0.7, 0.5], [0.7, 0.7], [0.5, 0.7]]), True)
+    box, inside, _ = census.polygon_cells(grid, change, 0)
+    none = np.zeros(grid.shape, bool)
+    rows = np.flatnonzero(inside.any(axis=1)) + box[0].start
+    assert rows.tolist() == [26, 27, 28, 29, 30] and inside.sum() == 20  # 4 cells a row
+    local_state = np.full(grid.shape, UNKNOWN, np.uint8)
+    local_state[:28, :] = FREE  # its first two rows seen
+    left_out = np.zeros(grid.shape, bool)
+    left_out[:27, :] = True  # of those, the first left out
+    trace = census.Trace(
+        compared=True,
+        grid=grid,
+        raw=DiffMasks(none, none),
+        masks=DiffMasks(none, none),
+        local_state=local_state,
+        left_out=left_out,
+    )
+
+    stage, line = census.miss_line(change, trace)
+
+    assert stage == "no difference"
+    assert "polygon 20 cells (seen 8, left out 4), raw 0," in line
+
+
 def test_the_fleets_own_comparison_is_not_recorded(
     census: ModuleType, monkeypatch: pytest.MonkeyPatch
 ) -> None:
