@@ -399,22 +399,25 @@ def apart(a: Transform2D, b: Transform2D, points: FloatArray) -> FloatArray:
     return np.asarray(np.hypot(*(a.apply(points) - b.apply(points)).T))
 
 
-def _gap(a: Piece, b: Piece) -> float:
-    """How far apart the transforms of pieces ``a`` and ``b`` (later on the route) put the point
-    where ``b``'s route starts, metres."""
-    return float(apart(a.nav2_from_slam, b.nav2_from_slam, np.array([b.junction]))[0])
+def _gap_across(pieces: Sequence[Piece], a: Piece, b: Piece) -> float:
+    """How far apart the transforms of pieces ``a`` and ``b`` (later on the route) put the
+    point where they are measured against each other (:func:`_measured_at`: the middle of the
+    runs of ``pieces`` between them, else where ``b``'s route starts), metres."""
+    at = _measured_at([q for q in pieces if a.index < q.index < b.index], b)
+    return float(apart(a.nav2_from_slam, b.nav2_from_slam, at)[0])
 
 
 def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     """The indices of the largest (by total area) chain of aligned pieces (``Piece.aligned``),
     in route order, each within ``agree_m`` of the one before where they meet (pieces that did
-    not align are skipped, not breaks). A piece that found a wrong match jumps; drift does not:
-    the pieces that agree with each other over most of the route are the right ones, whichever
-    one the prior anchored.
+    not align are skipped, not breaks: across them, two pieces are measured at the middle pose
+    of their runs, where drift over the run between has turned the two transforms apart the
+    least). A piece that found a wrong match jumps; drift does not: the pieces that agree with
+    each other over most of the route are the right ones, whichever one the prior anchored.
 
     A chain may also step over an aligned piece, never two in a row: the pieces on either side
     of it agree at the middle pose of the runs between them (the stepped-over piece's and any
-    that did not align; the later piece's junction when those runs are empty). A piece a wrong
+    that did not align). A piece a wrong
     match turned about one of its ends meets that neighbour and not the other, and would
     otherwise cut a right route in two. Stepping over only wins where it makes the chain
     heavier, so a route whose pieces all agree keeps every one of them."""
@@ -428,14 +431,11 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     for k, piece in enumerate(aligned):
         best.append(piece.area_m2)
         before.append(-1)
-        if k >= 1 and _gap(aligned[k - 1], piece) <= agree_m:
-            best[k], before[k] = best[k - 1] + piece.area_m2, k - 1
-        if k >= 2:
-            first = aligned[k - 2].index
-            at = _measured_at([q for q in pieces if first < q.index < piece.index], piece)
-            gap = float(apart(aligned[k - 2].nav2_from_slam, piece.nav2_from_slam, at)[0])
-            if gap <= agree_m and best[k - 2] + piece.area_m2 > best[k]:
-                best[k], before[k] = best[k - 2] + piece.area_m2, k - 2
+        # From the aligned piece before it, or stepping over that one, when heavier.
+        for j in (k - 1, k - 2):
+            heavier = j >= 0 and best[j] + piece.area_m2 > best[k]
+            if heavier and _gap_across(pieces, aligned[j], piece) <= agree_m:
+                best[k], before[k] = best[j] + piece.area_m2, j
     k = int(np.argmax(best))
     chain: set[int] = set()
     while k >= 0:

@@ -503,6 +503,26 @@ def test_a_stepped_over_piece_is_measured_across_at_the_middle_of_its_run() -> N
     assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 5, 6}
 
 
+def test_pieces_either_side_of_one_that_did_not_align_are_measured_at_the_middle_of_its_run() -> (
+    None
+):
+    """A route whose drift turns each 20 m piece 2 degrees more than the last; piece 3 did not
+    align. Pieces 2 and 4 meet at the middle of 3's run but lie 0.7 m apart where 4 starts:
+    measured there, the route was cut in two at the piece that did not align and only 0-2 was
+    trusted (session 27, seed 7117 `gen-00-drifting`: a 21 m piece between two that agree to
+    0.06 m either side of it left out with it)."""
+    truth = _drifted(6, 2.0)
+    pieces = [_on_route(i, truth[i], trusted=i != 3) for i in range(6)]
+    assert piecewise.apart(truth[2], truth[4], np.array([[70.0, 0.0]]))[0] < 0.05
+    assert piecewise.apart(truth[2], truth[4], np.array([[80.0, 0.0]]))[0] > 0.5
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 4, 5}
+    # Two that did not align: measured at the middle of both runs, (80, 0).
+    truth = _drifted(7, 2.0)
+    pieces = [_on_route(i, truth[i], trusted=i not in (3, 4)) for i in range(7)]
+    assert piecewise.apart(truth[2], truth[5], np.array([[80.0, 0.0]]))[0] < 0.05
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 5, 6}
+
+
 def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
     """Piece ``i`` of a straight route east along y = 0, 20 m each (its run's start, middle and
     end), carried by ``t``; one left out scores 0.3."""
