@@ -521,6 +521,15 @@ def test_pieces_either_side_of_one_that_did_not_align_are_measured_at_the_middle
     pieces = [_on_route(i, truth[i], trusted=i not in (3, 4)) for i in range(7)]
     assert piecewise.apart(truth[2], truth[5], np.array([[80.0, 0.0]]))[0] < 0.05
     assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 5, 6}
+    # Where the later starts is not asked: piece 4 turned 4 degrees about that point (a wrong
+    # match turned about its end meets there) lies 0.7 m off piece 2 at the middle of 3's run,
+    # and is not joined (measured at either place, seed 6006's `gen-03-drifting` trusted such
+    # a piece, 0.8 m off the true route: the bundle aligned 0.110 m off, against 0.007 m).
+    still, turned = Transform2D(0.0, 0.0, 0.0), _turn_about((80.0, 0.0), 4.0)
+    pieces = [_on_route(i, turned if i == 4 else still, trusted=i != 3) for i in range(5)]
+    assert piecewise.apart(still, turned, np.array([[80.0, 0.0]]))[0] < 1e-9
+    assert piecewise.apart(still, turned, np.array([[70.0, 0.0]]))[0] > 0.5
+    assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2}
 
 
 def _on_route(i: int, t: Transform2D, trusted: bool = True) -> piecewise.Piece:
