@@ -11,9 +11,7 @@ gets the stage that lost it:
 
 * ``not compared``: the bundle failed, or its alignment was not trusted;
 * ``no difference``: no cell of it in the raw difference mask (not seen in the aligned local
-  map, or within a tolerance of the global map); each miss says how many of its polygon's
-  cells the aligned local map knows (``seen``) and how many lie where a part of the map was
-  left out of the comparison (``left out``: an untrusted piece, a region off the building);
+  map, or within a tolerance of the global map);
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
@@ -22,7 +20,10 @@ gets the stage that lost it:
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
-For each false positive it prints the checks it passed. With ``--all``, every difference the
+Each compared miss also says how many of its polygon's cells the aligned local map knows
+(``seen``) and how many lie where a part of the map was left out of the comparison (``left
+out``: an untrusted piece, a region off the building). For each false positive it prints the
+checks it passed. With ``--all``, every difference the
 re-fit judged is listed with its label (``score_bundle`` on it as if reported: ``correct``,
 ``neutral``, ``false_positive``) and the check that decided it (the first to explain it, or
 ``reported``), and a table counts them by that check and label: the census behind the

@@ -411,16 +411,18 @@ def largest_chain(pieces: Sequence[Piece], agree_m: float) -> set[int]:
     """The indices of the largest (by total area) chain of aligned pieces (``Piece.aligned``),
     in route order, each within ``agree_m`` of the one before where they meet (pieces that did
     not align are skipped, not breaks: across them, two pieces are measured at the middle pose
-    of their runs, where drift over the run between has turned the two transforms apart the
-    least). A piece that found a wrong match jumps; drift does not: the pieces that agree with
-    each other over most of the route are the right ones, whichever one the prior anchored.
+    of the skipped pieces' runs, where drift over the route between has turned the two
+    transforms apart the least, and where a wrong match turned about its own start does not
+    meet its neighbour). A piece that found a wrong match jumps; drift does not: the pieces
+    that agree with each other over most of the route are the right ones, whichever one the
+    prior anchored.
 
     A chain may also step over an aligned piece, never two in a row: the pieces on either side
     of it agree at the middle pose of the runs between them (the stepped-over piece's and any
-    that did not align). A piece a wrong
-    match turned about one of its ends meets that neighbour and not the other, and would
-    otherwise cut a right route in two. Stepping over only wins where it makes the chain
-    heavier, so a route whose pieces all agree keeps every one of them."""
+    that did not align). A piece a wrong match turned about one of its ends meets that
+    neighbour and not the other, and would otherwise cut a right route in two. Stepping over
+    only wins where it makes the chain heavier, so a route whose pieces all agree keeps every
+    one of them."""
     aligned = [p for p in pieces if p.aligned]
     if not aligned:
         return set()

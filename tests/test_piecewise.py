@@ -508,9 +508,9 @@ def test_pieces_either_side_of_one_that_did_not_align_are_measured_at_the_middle
 ):
     """A route whose drift turns each 20 m piece 2 degrees more than the last; piece 3 did not
     align. Pieces 2 and 4 meet at the middle of 3's run but lie 0.7 m apart where 4 starts:
-    measured there, the route was cut in two at the piece that did not align and only 0-2 was
-    trusted (session 27, seed 7117 `gen-00-drifting`: a 21 m piece between two that agree to
-    0.06 m either side of it left out with it)."""
+    measured there, they did not meet and the chain stepped over the right piece 2 instead
+    ({0, 1, 4, 5}; session 27, seed 7117 `gen-00-drifting`: its piece 3, 0.12 m from piece 2
+    where they meet, was stepped over beside piece 4, which did not align)."""
     truth = _drifted(6, 2.0)
     pieces = [_on_route(i, truth[i], trusted=i != 3) for i in range(6)]
     assert piecewise.apart(truth[2], truth[4], np.array([[70.0, 0.0]]))[0] < 0.05
@@ -523,8 +523,9 @@ def test_pieces_either_side_of_one_that_did_not_align_are_measured_at_the_middle
     assert piecewise.largest_chain(pieces, agree_m=0.5) == {0, 1, 2, 5, 6}
     # Where the later starts is not asked: piece 4 turned 4 degrees about that point (a wrong
     # match turned about its end meets there) lies 0.7 m off piece 2 at the middle of 3's run,
-    # and is not joined (measured at either place, seed 6006's `gen-03-drifting` trusted such
-    # a piece, 0.8 m off the true route: the bundle aligned 0.110 m off, against 0.007 m).
+    # and is not joined (tried: joined when either place agrees, seed 6006's `gen-03-drifting`
+    # trusted such a piece, 0.8 m off the true route: the bundle aligned 0.110 m off, against
+    # 0.007 m measured midway only).
     still, turned = Transform2D(0.0, 0.0, 0.0), _turn_about((80.0, 0.0), 4.0)
     pieces = [_on_route(i, turned if i == 4 else still, trusted=i != 3) for i in range(5)]
     assert piecewise.apart(still, turned, np.array([[80.0, 0.0]]))[0] < 1e-9
