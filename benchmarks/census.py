@@ -147,22 +147,19 @@ class Trace:
 
     def of(self, difference: cluster_stage.Difference) -> list[Verdict]:
         """The verdicts on ``difference``, in the order the re-fit asked them: those recorded
-        on its cells and on their nav2 points (on this trace's grid)."""
+        on its cells and on their nav2 points (``pipeline._nav2_points`` on this trace's grid,
+        as the re-fit makes them)."""
         if difference.cells is None:
             return []
         verdicts = list(self.verdicts.get(_key(difference.cells), []))
         if self.grid is not None:
-            verdicts += self.verdicts.get(_key(_points(self.grid, difference.cells)), [])
+            points = pipeline._nav2_points(self.grid, difference.cells)
+            verdicts += self.verdicts.get(_key(points), [])
         return sorted(verdicts, key=lambda v: CHECKS.index(v.check))
 
 
 def _key(cells: NDArray[Any]) -> bytes:
     return np.ascontiguousarray(cells).tobytes()
-
-
-def _points(grid: Grid, cells: NDArray[np.intp]) -> NDArray[np.float64]:
-    """A difference's cells as nav2 points, as ``pipeline._refit`` makes them."""
-    return grid.to_world(cells[:, ::-1].astype(float))
 
 
 @contextmanager

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cache, partial
 
 import cv2
 import numpy as np
@@ -248,8 +249,11 @@ def drawn_walls(m: OccupancyMap) -> NDArray[np.bool_]:
     return np.zeros(m.state.shape, bool) if drawn is None else drawn
 
 
-def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
-    """:func:`drawn_walls`, None when the map is no drawing."""
+def _drawn(
+    m: OccupancyMap, line_cells: Callable[[], NDArray[np.bool_]] | None = None
+) -> NDArray[np.bool_] | None:
+    """:func:`drawn_walls`, None when the map is no drawing. ``line_cells()``: ``m``'s
+    :func:`_line_cells`, when the caller has them (or may need them again)."""
     occ, state = m.occupancy, m.state
     # A scan has few cells of a line's grey levels and a trinary map none: a look at every
     # fourth row and column tells, before anything is counted exactly.
@@ -260,7 +264,7 @@ def _drawn(m: OccupancyMap) -> NDArray[np.bool_] | None:
     if not enough:
         return None
     n_black = int(counts.occupied.sum())
-    lines = _line_cells(m) & grey_levels[occ]
+    lines = (line_cells() if line_cells is not None else _line_cells(m)) & grey_levels[occ]
     # A drawing has more clear line pixels than black cells (a scan, its walls black, fewer).
     if np.count_nonzero(lines & clearly[occ]) <= n_black:
         return None
@@ -486,7 +490,10 @@ def _drawn_structure(
     """The alignment's walls of ``m`` (uint8 0/1, a crop of ``whole``), the cells its
     drawing makes walls for the differences, and the rims of a drawing's grey boxes (each
     (H, W) bool, None if none), all only where ``same`` (when given)."""
-    drawn = _drawn(m)
+    # The line cells, for the drawing's lines and for the ridges of walls drawn grey: a
+    # top-hat of the whole map, worked out once, and only if either asks.
+    line_cells = cache(partial(_line_cells, m))
+    drawn = _drawn(m, line_cells)
     if drawn is not None and same is not None:
         drawn &= same
     unknown_level = _unknown_level(m)
@@ -519,7 +526,7 @@ def _drawn_structure(
     grey_walls = structure & (m.state == UNKNOWN)
     if grey_walls.any():
         walls |= cv2.erode(grey_walls.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
-        walls |= _grey_ridges(m, grey_walls)
+        walls |= _grey_ridges(m, grey_walls, line_cells())
     if same is not None:
         walls &= same
         if box_rims is not None:
@@ -527,16 +534,19 @@ def _drawn_structure(
     return structure.astype(np.uint8), (walls if walls.any() else None), box_rims
 
 
-def _grey_ridges(m: OccupancyMap, grey_walls: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def _grey_ridges(
+    m: OccupancyMap, grey_walls: NDArray[np.bool_], line_cells: NDArray[np.bool_]
+) -> NDArray[np.bool_]:
     """(H, W) bool: the cells of ``grey_walls`` (H, W) on the ridge of a line, where a wall
     drawn grey stands. A cell on it is as dark as the darkest cell beside it but for
     ``_RIDGE_DROP`` (a line drawn two pixels wide has two such cells across it), is on a line
-    as a drawing's are (:func:`_line_cells`: a gentle slope of grey is none, however flat; a
-    black wall's rim or second trace is none), and lies in a run of a wall's length
+    as a drawing's are (``line_cells``, ``m``'s :func:`_line_cells`: a gentle slope of grey is
+    none, however flat; a black wall's rim or second trace is none), and lies in a run of a
+    wall's length
     (:func:`_long_runs`: not a mark, not scan noise)."""
     occ = m.occupancy
     darkest = cv2.dilate(occ, np.ones((3, 3), np.uint8))  # never lighter than the cell
-    ridge = grey_walls & ((darkest - occ) <= _RIDGE_DROP) & _line_cells(m)
+    ridge = grey_walls & ((darkest - occ) <= _RIDGE_DROP) & line_cells
     labels, long = _long_runs(ridge, m.resolution)
     return np.asarray(long[labels], dtype=bool)
 

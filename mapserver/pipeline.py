@@ -801,7 +801,7 @@ def _refit(
         ):
             return True
         if aligned.in_pieces and aligned.pieces is not None:
-            xy = grid.to_world(diff.cells[:, ::-1].astype(float))
+            xy = _nav2_points(grid, diff.cells)
             if _seen_on_another_pass(
                 diff, xy, aligned.pieces, aligned.view, local, config, near_wall, sensor_reach_m
             ):
@@ -820,6 +820,12 @@ def _refit(
         )
 
     return [diff for diff in differences if diff.cells is None or not explained(diff)]
+
+
+def _nav2_points(grid: Grid, cells: np.ndarray) -> np.ndarray:
+    """The nav2 points (N, 2) of cells ((N, 2) row, col) on ``grid``: what the re-fit's fold
+    checks of an alignment in pieces are given of a difference."""
+    return grid.to_world(cells[:, ::-1].astype(float))
 
 
 def _folded(faces: refit_stage.Faces, resolution: float) -> bool:
