@@ -433,11 +433,15 @@ def _diff_masks(
     global_map: OccupancyMap,
     route: Callable[[], RouteDistance | None] = lambda: None,
     reach_m: Callable[[], float] = lambda: 0.0,
+    *,
+    drifted: bool = False,
 ) -> tuple[diff_stage.DiffMasks, np.ndarray]:
     """The filtered added/removed masks of the local map against a global state (on ``grid``),
     and the removal evidence (its depth growing with the distance from the route, ``route()``
     on ``grid`` (:func:`_route_on`), and with the robot's longest rays, ``reach_m()``, both
-    asked only when there are removed cells: ``_DEPTH_PER_M``)."""
+    asked only when there are removed cells: ``_DEPTH_PER_M``). ``drifted``: the session
+    drifted (:func:`_drifted`), so past a wall's end removed cells keep the wider
+    ``drifted_removed_end_tolerance_m``."""
     d = config.pipeline.diff
     tolerance_map = None
     if d.max_misfit_tolerance_m > d.tolerance_m:
@@ -464,7 +468,9 @@ def _diff_masks(
         removed_tolerance_m=d.removed_tolerance_m,
         global_walls=structure,
         extra_tolerance_m=tolerance_map,
-        end_tolerance_m=d.removed_end_tolerance_m,
+        end_tolerance_m=(
+            d.drifted_removed_end_tolerance_m if drifted else d.removed_end_tolerance_m
+        ),
     )
     min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
     filtered = diff_stage.filter_noise(raw, min_pixels=min_px)
@@ -1287,7 +1293,15 @@ def _diff(
         inputs.global_map,
         route,
         lambda: inputs.reach_m,
+        drifted=_drifted(aligned),
     )
+
+
+def _drifted(aligned: _Aligned) -> bool:
+    """Whether the session drifted: a drift correction of ``_REFIT_DRIFT_M`` or more, or
+    aligned in pieces. Specks are not reported then, the wall ends' tolerance is wider, and a
+    difference a small local re-fit of the walls around it explains is a wall seen twice."""
+    return aligned.compared and (aligned.drift_m >= _REFIT_DRIFT_M or aligned.in_pieces)
 
 
 def _alignment_doc(
@@ -1441,6 +1455,7 @@ def _judged_on_current(
         inputs.global_map,
         found.route,
         lambda: inputs.reach_m,
+        drifted=drifted,
     )
     judged = _cluster_masks(fleet_masks, removal_current, grid, config, local, drifted=drifted)
     if drifted and judged:
@@ -1609,10 +1624,7 @@ def process_bundle(
     masks, evidence = stages.run(
         "diff", partial(_diff, aligned, region.mask, inputs, config, route)
     )
-    # After a drifting session (a drift correction of 0.2 m or more, or pieces), specks are
-    # not reported, and a difference that a small local re-fit of the walls around it
-    # explains is a wall seen twice.
-    refit = aligned.compared and (aligned.drift_m >= _REFIT_DRIFT_M or aligned.in_pieces)
+    refit = _drifted(aligned)
     differences = stages.run(
         "cluster", partial(_cluster_masks, masks, evidence, grid, config, local, drifted=refit)
     )

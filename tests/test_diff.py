@@ -18,6 +18,7 @@ from mapserver.cluster import (
     neighbour_offsets,
     sort_by_area,
 )
+from mapserver.config import DiffConfig
 from mapserver.deform import warp_local
 from mapserver.diff import (
     DiffMasks,
@@ -544,6 +545,31 @@ def test_a_gap_in_a_wall_is_removed_up_to_the_smaller_end_tolerance() -> None:
     assert side.sum() == 2 * 3  # 0.25 m from both ends: two rows left of the gap
     ends = raw_differences(g, loc, roi, **kw, end_tolerance_m=0.2).removed
     assert ends.sum() == 4 * 3 and set(np.nonzero(ends)[0]) == {48, 49, 50, 51}
+
+
+def test_a_doorway_cut_through_a_wall_is_removed_across_most_of_its_width() -> None:
+    """A doorway 0.5 m wide cut through a wall 0.35 m thick, the walls either side seen where
+    drawn (they fit): with the configured tolerances the removal covers most of the opening.
+    Past a seen wall's end the robot's rays draw the end within a cell or two; the 0.2 m asked
+    until session 28 left two columns of ten (fp3409 `gen-06-floorplan`, a doorway of 0.57 m,
+    5 cells, not reported)."""
+    g = np.full((100, 100), FREE, np.uint8)
+    g[:, 45:52] = OCCUPIED
+    loc = g.copy()
+    loc[40:50, 45:52] = FREE  # rows 40-49: the wall gone, seen through from both sides
+    d = DiffConfig()
+    removed = raw_differences(
+        g,
+        loc,
+        np.ones(g.shape, bool),
+        resolution=RES,
+        tolerance_m=d.tolerance_m,
+        removed_tolerance_m=d.removed_tolerance_m,
+        end_tolerance_m=d.removed_end_tolerance_m,
+    ).removed
+    assert not (removed & (g == FREE)).any() and not removed[:40].any() and not removed[50:].any()
+    assert removed[40:50].sum() >= 0.5 * 10 * 7
+    assert set(np.nonzero(removed)[0]) == set(range(42, 48))  # two cells of each end left
 
 
 def test_a_wall_seen_off_to_one_side_keeps_the_removed_tolerance() -> None:

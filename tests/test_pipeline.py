@@ -310,6 +310,31 @@ def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported(
         assert [d.kind for d in found] == kinds
 
 
+def test_a_doorway_past_seen_wall_ends_keeps_the_wider_end_tolerance_after_a_drifting_session() -> (
+    None
+):
+    """A doorway 0.5 m wide cut through a wall 0.35 m thick, seen through from both sides: where
+    the session did not drift, removed up to 0.1 m of the wall ends either side (six rows of
+    ten); after a drifting session, whose drift draws wall ends short, up to 0.2 m (two)."""
+    g = np.full((100, 100), FREE, np.uint8)
+    g[:, 45:52] = OCCUPIED
+    loc = g.copy()
+    loc[40:50, 45:52] = FREE
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
+    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
+    roi = np.ones(g.shape, bool)
+
+    def removed_rows(drifted: bool) -> set[int]:
+        masks, _ = pipeline._diff_masks(
+            g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, drifted=drifted
+        )
+        return {int(r) for r in np.nonzero(masks.removed)[0]}
+
+    assert removed_rows(False) == set(range(42, 48))
+    assert removed_rows(True) == {44, 45}
+
+
 def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> None:
     """A block (rows 40 on) whose face the local map sees free 0.3 m deep, no route: evidence
     that it is gone when the robot's rays were short, none when they reached 30 m (three
