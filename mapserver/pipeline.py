@@ -590,7 +590,8 @@ def _cluster_masks(
 # showed no bend from the chain alone; the whole fit's warp left that end 1 m off, 2 false
 # positives; over 9 sets precision up on gen99 0.973 -> 0.987, nothing else changed).
 _BEND_M = 0.5
-# The drift correction (metres) from which differences are checked by a local re-fit.
+# The drift correction (metres) from which a session drifted (:func:`_drifted`): differences
+# are checked by a local re-fit, specks are not reported and wall ends have a wider tolerance.
 _REFIT_DRIFT_M = 0.2
 # ... and from which the transform reported is the rigid fit of the warp (beyond the noise
 # of the walls the drift is measured on).
@@ -1274,10 +1275,12 @@ def _diff(
     inputs: _Inputs,
     config: Config,
     route: Callable[[], RouteDistance | None],
+    *,
+    drifted: bool,
 ) -> tuple[diff_stage.DiffMasks, np.ndarray]:
     """The filtered added/removed masks of the aligned local map against the global map and the
     removal evidence, on ``aligned.view.grid`` (``route()``: the route's distance there,
-    :func:`_route_on`): all empty when nothing is compared."""
+    :func:`_route_on`; ``drifted``: :func:`_drifted`): all empty when nothing is compared."""
     view = aligned.view
     if not aligned.compared:
         empty = np.zeros(view.grid.shape, bool)
@@ -1293,7 +1296,7 @@ def _diff(
         inputs.global_map,
         route,
         lambda: inputs.reach_m,
-        drifted=_drifted(aligned),
+        drifted=drifted,
     )
 
 
@@ -1351,14 +1354,14 @@ def _alignment_doc(
 class _Found:
     """What the comparison found, on the aligned view's grid (nav2 frame): ``region`` the ROI,
     ``masks`` the filtered added/removed cells, ``differences`` the ones reported (largest
-    first). ``refit``: the session drifted, so specks were dropped and the differences checked
-    by a local re-fit (``_REFIT_DRIFT_M``). ``route()``: the route's distance on that grid the
+    first). ``drifted``: the session drifted (:func:`_drifted`), so wall ends had the wider
+    tolerance, specks were dropped and the differences checked by a local re-fit. ``route()``: the route's distance on that grid the
     removal evidence measured from (:func:`_route_on`, worked out on first use)."""
 
     region: roi.Roi
     masks: diff_stage.DiffMasks
     differences: list[cluster_stage.Difference]
-    refit: bool
+    drifted: bool
     route: Callable[[], RouteDistance | None]
 
 
@@ -1443,7 +1446,7 @@ def _judged_on_current(
         # The drawing's walls, where no published change has touched them.
         state = np.where(same & (view.state == OCCUPIED), OCCUPIED, state)
         state = state.astype(np.uint8)
-    roi_mask, local, drifted = found.region.mask, inputs.local, found.refit
+    roi_mask, local, drifted = found.region.mask, inputs.local, found.drifted
     fleet_masks, removal_current = _diff_masks(
         state,
         structure,
@@ -1621,21 +1624,21 @@ def process_bundle(
     )
     # Worked out once when either comparison has removed cells to judge.
     route = cache(partial(_route_on, grid, route_xy))
+    drifted = _drifted(aligned)
     masks, evidence = stages.run(
-        "diff", partial(_diff, aligned, region.mask, inputs, config, route)
+        "diff", partial(_diff, aligned, region.mask, inputs, config, route, drifted=drifted)
     )
-    refit = _drifted(aligned)
     differences = stages.run(
-        "cluster", partial(_cluster_masks, masks, evidence, grid, config, local, drifted=refit)
+        "cluster", partial(_cluster_masks, masks, evidence, grid, config, local, drifted=drifted)
     )
-    if refit and differences:
+    if drifted and differences:
         differences = stages.run(
             "refit",
             partial(
                 _refit, differences, aligned, masks.added, config, local, lambda: inputs.reach_m
             ),
         )
-    found = _Found(region, masks, differences, refit, route)
+    found = _Found(region, masks, differences, drifted, route)
 
     alignment_doc = _alignment_doc(alignment, aligned, local, settings.align.min_score)
     notice = trust_notice(alignment_doc)

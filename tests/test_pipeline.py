@@ -310,9 +310,7 @@ def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported(
         assert [d.kind for d in found] == kinds
 
 
-def test_a_doorway_past_seen_wall_ends_keeps_the_wider_end_tolerance_after_a_drifting_session() -> (
-    None
-):
+def test_wall_ends_keep_the_wider_tolerance_after_a_drifting_session() -> None:
     """A doorway 0.5 m wide cut through a wall 0.35 m thick, seen through from both sides: where
     the session did not drift, removed up to 0.1 m of the wall ends either side (six rows of
     ten); after a drifting session, whose drift draws wall ends short, up to 0.2 m (two)."""
