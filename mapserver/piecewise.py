@@ -351,13 +351,16 @@ def grow_chain(
             trend = heading_trend([out[j] for j in sorted(chain, reverse=step < 0)], i)
             again = fit(i, out[end].nav2_from_slam, -1 if step < 0 else 0)
             # Aligned again from the end first, then its first fit.
-            ok = [
-                p
-                for p in (again, pieces[i])
-                if _joins(p, out[end], at, trend, agree_m, max_turn_rad)
-            ]
-            if ok:
-                out[i], end, over = ok[0], i, []
+            joined = next(
+                (
+                    p
+                    for p in (again, pieces[i])
+                    if _joins(p, out[end], at, trend, agree_m, max_turn_rad)
+                ),
+                None,
+            )
+            if joined is not None:
+                out[i], end, over = joined, i, []
                 chain.add(i)
             else:
                 over.append(i)

@@ -551,8 +551,8 @@ def _cluster_masks(
     drifted: bool = False,
 ) -> list[cluster_stage.Difference]:
     """The obstacles of the difference masks, largest first. ``drifted``: the session drifted
-    (see ``_REFIT_DRIFT_M``), so the floor on an added one's area is ``drifted_min_area_m2``
-    (a removed one has its evidence to show, and the re-fit's checks after)."""
+    (:func:`_drifted`), so the floor on an added one's area is ``drifted_min_area_m2`` (a
+    removed one has its evidence to show, and the re-fit's checks after)."""
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
     added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
@@ -592,7 +592,7 @@ def _cluster_masks(
 _BEND_M = 0.5
 # The drift correction (metres) from which a session drifted (:func:`_drifted`): differences
 # are checked by a local re-fit, specks are not reported and wall ends have a wider tolerance.
-_REFIT_DRIFT_M = 0.2
+_DRIFTED_M = 0.2
 # ... and from which the transform reported is the rigid fit of the warp (beyond the noise
 # of the walls the drift is measured on).
 _REPORT_WARP_M = 0.1
@@ -1301,10 +1301,10 @@ def _diff(
 
 
 def _drifted(aligned: _Aligned) -> bool:
-    """Whether the session drifted: a drift correction of ``_REFIT_DRIFT_M`` or more, or
+    """Whether the session drifted: a drift correction of ``_DRIFTED_M`` or more, or
     aligned in pieces. Specks are not reported then, the wall ends' tolerance is wider, and a
     difference a small local re-fit of the walls around it explains is a wall seen twice."""
-    return aligned.compared and (aligned.drift_m >= _REFIT_DRIFT_M or aligned.in_pieces)
+    return aligned.compared and (aligned.drift_m >= _DRIFTED_M or aligned.in_pieces)
 
 
 def _alignment_doc(
@@ -1355,8 +1355,9 @@ class _Found:
     """What the comparison found, on the aligned view's grid (nav2 frame): ``region`` the ROI,
     ``masks`` the filtered added/removed cells, ``differences`` the ones reported (largest
     first). ``drifted``: the session drifted (:func:`_drifted`), so wall ends had the wider
-    tolerance, specks were dropped and the differences checked by a local re-fit. ``route()``: the route's distance on that grid the
-    removal evidence measured from (:func:`_route_on`, worked out on first use)."""
+    tolerance, specks were dropped and the differences checked by a local re-fit.
+    ``route()``: the route's distance on that grid the removal evidence measured from
+    (:func:`_route_on`, worked out on first use)."""
 
     region: roi.Roi
     masks: diff_stage.DiffMasks
