@@ -7,7 +7,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from worlds import cut_local, office
+from worlds import cut_local, doorway_cut, office
 
 from mapserver.cluster import (
     ENGINES,
@@ -553,10 +553,7 @@ def test_a_doorway_cut_through_a_wall_is_removed_across_most_of_its_width() -> N
     Past a seen wall's end the robot's rays draw the end within a cell or two; the 0.2 m asked
     until session 28 left two rows of ten (fp3409 `gen-06-floorplan`, a doorway of 0.57 m,
     5 cells, not reported)."""
-    g = np.full((100, 100), FREE, np.uint8)
-    g[:, 45:52] = OCCUPIED
-    loc = g.copy()
-    loc[40:50, 45:52] = FREE  # rows 40-49: the wall gone, seen through from both sides
+    g, loc = doorway_cut()
     d = DiffConfig()
     removed = raw_differences(
         g,

@@ -19,6 +19,7 @@ from worlds import (
     changed,
     changed_hall,
     cut_local,
+    doorway_cut,
     office,
     offset,
     write_bundle,
@@ -314,10 +315,7 @@ def test_wall_ends_keep_the_wider_tolerance_after_a_drifting_session() -> None:
     """A doorway 0.5 m wide cut through a wall 0.35 m thick, seen through from both sides: where
     the session did not drift, removed up to 0.1 m of the wall ends either side (six rows of
     ten); after a drifting session, whose drift draws wall ends short, up to 0.2 m (two)."""
-    g = np.full((100, 100), FREE, np.uint8)
-    g[:, 45:52] = OCCUPIED
-    loc = g.copy()
-    loc[40:50, 45:52] = FREE
+    g, loc = doorway_cut()
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
     global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))

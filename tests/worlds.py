@@ -70,6 +70,17 @@ def colonnade(*, resolution: float = 0.05, spacing_m: float = 4.0) -> OccupancyM
     return from_states(state, resolution, (0.0, 0.0, 0.0))
 
 
+def doorway_cut() -> tuple[np.ndarray, np.ndarray]:
+    """A global state (100 x 100 cells of 0.05 m) with a wall 0.35 m thick (cols 45-51), and a
+    local state the same but for a doorway 0.5 m wide cut through it (rows 40-49), seen free
+    from both sides: the robot looked through it, the wall ends either side seen where drawn."""
+    g = np.full((100, 100), FREE, np.uint8)
+    g[:, 45:52] = OCCUPIED
+    loc = g.copy()
+    loc[40:50, 45:52] = FREE
+    return g, loc
+
+
 @dataclass(frozen=True)
 class Cut:
     """A local map cut from a world, with the truth."""
