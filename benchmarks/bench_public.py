@@ -26,7 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +39,7 @@ from mapserver.config import load_config
 from mapserver.errors import MapserverError
 from mapserver.maps import load_map
 from mapserver.outbox import RESULT, write_result
-from mapserver.pipeline import process_bundle
+from mapserver.pipeline import _DRIFTED_M, process_bundle
 from mapserver.scoring import (
     BundleScore,
     Summary,
@@ -86,6 +86,8 @@ class Row:
     timings_ms: dict[str, float] = field(default_factory=dict)
     trust: str = "-"
     """``trusted``, ``partly`` (a share of the local map compared), ``untrusted`` or ``-``."""
+    aligned: str = "-"
+    """How the local map was laid on the global map: see :func:`_aligned`."""
 
 
 class UsageError(Exception):
@@ -130,6 +132,23 @@ def _trust(doc: Any) -> str:
         return "untrusted"
     share = alignment.get("trusted_share")
     return "partly" if isinstance(share, (int, float)) and share < 0.999 else "trusted"
+
+
+def _aligned(doc: Any) -> str:
+    """How a result's local map was laid on the global map: ``pieces`` (aligned in pieces),
+    ``drifted`` (whole, with a drift correction of ``pipeline._DRIFTED_M`` or more), ``fits``
+    (whole, less), ``untrusted`` (not compared), ``-`` when the result does not say. The
+    drifted and pieced bundles are where the pipeline's drift checks run, and where most of
+    what it misses lies."""
+    alignment = doc.get("alignment") if isinstance(doc, dict) else None
+    if not isinstance(alignment, dict) or "trusted" not in alignment:
+        return "-"
+    if not alignment["trusted"]:
+        return "untrusted"
+    if "pieces" in str(alignment.get("method", "")).split("+"):
+        return "pieces"
+    drift_m = alignment.get("drift_m")
+    return "drifted" if isinstance(drift_m, (int, float)) and drift_m >= _DRIFTED_M else "fits"
 
 
 def run_in_process(cases: Sequence[Case], outbox: Path, config_path: Path | None) -> dict[str, Run]:
@@ -249,7 +268,9 @@ def score_outbox(
         centre = local_map_centre(case.bundle_dir) if result.ok else None
         score = score_bundle(truth, result, centre_slam_xy=centre)
         timings = dict(result.timings_ms)
-        rows.append(Row(case, score, result.status, seconds, None, timings, _trust(raw)))
+        rows.append(
+            Row(case, score, result.status, seconds, None, timings, _trust(raw), _aligned(raw))
+        )
     return rows
 
 
@@ -341,22 +362,39 @@ def report(rows: Sequence[Row], *, set_dir: Path, outbox: Path, mode: str) -> di
             "stage_median_ms": stage_medians_ms(rows),
         },
         "kinds": kind_totals(rows),
+        "alignments": alignment_totals(rows),
     }
 
 
 def kind_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
     """The totals of each kind of scenario (its case), in first-seen order."""
-    by_kind: dict[str, list[Row]] = {}
+    return _group_totals(rows, lambda row: row.case.kind)
+
+
+# The order of the alignment totals: as the local map fits the global map less.
+_ALIGNED_ORDER = ("fits", "drifted", "pieces", "untrusted", "-")
+
+
+def alignment_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
+    """The totals of the bundles of each way of alignment (:func:`_aligned`), failed ones
+    left out (their result does not say), in the order of ``_ALIGNED_ORDER``."""
+    totals = _group_totals([r for r in rows if r.status == "ok"], lambda row: row.aligned)
+    return {key: totals[key] for key in _ALIGNED_ORDER if key in totals}
+
+
+def _group_totals(rows: Sequence[Row], key: Callable[[Row], str]) -> dict[str, dict[str, Any]]:
+    """The totals of the rows of each ``key``, in first-seen order."""
+    groups: dict[str, list[Row]] = {}
     for row in rows:
-        by_kind.setdefault(row.case.kind, []).append(row)
+        groups.setdefault(key(row), []).append(row)
     out = {}
-    for kind, kind_rows in by_kind.items():
-        t = summarize(r.score for r in kind_rows)
-        out[kind] = {
+    for name, group in groups.items():
+        t = summarize(r.score for r in group)
+        out[name] = {
             "bundles": t.n_bundles,
             "failures": t.n_failures,
-            "untrusted": sum(r.trust == "untrusted" for r in kind_rows),
-            "partly": sum(r.trust == "partly" for r in kind_rows),
+            "untrusted": sum(r.trust == "untrusted" for r in group),
+            "partly": sum(r.trust == "partly" for r in group),
             "correct": t.n_correct,
             "false_positive": t.n_false_positive,
             "observed": t.n_observed,
@@ -420,6 +458,20 @@ def format_report(doc: dict[str, Any]) -> str:
                 f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
                 f"{k['matched']}/{k['observed']} found, {k['false_positive']} FP, "
                 f"{k['untrusted']} untrusted, {k['partly']} partly, {k['failures']} failed"
+            )
+    alignments = doc.get("alignments", {})
+    if len(alignments) > 1:
+        lines.append(
+            f"per alignment (fits: whole, drift correction under {_DRIFTED_M} m; drifted: "
+            "whole, more; pieces: in pieces):"
+        )
+        for name, k in alignments.items():
+            lines.append(
+                f"  {name:<14} {k['bundles']:>3} bundles  P {_fmt(k['precision'], '.3f')}  "
+                f"R {_fmt(k['recall'], '.3f')}  F1 {_fmt(k['f1'], '.3f')}  "
+                f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
+                f"{k['matched']}/{k['observed']} found, "
+                f"{k['observed'] - k['matched']} missed, {k['false_positive']} FP"
             )
     return "\n".join(lines)
 

@@ -471,6 +471,34 @@ def test_bench_scores_an_existing_outbox(bench, tiny_set, tmp_path, capsys):
     assert "TOTAL 2 bundles, 1 failures" in capsys.readouterr().out
 
 
+def test_bench_totals_bundles_by_how_they_were_aligned(bench, tiny_set, tmp_path, capsys):
+    """b1 aligned in pieces (its one change found, one false positive), b2 whole with a drift
+    correction under the drifted threshold (its change missed): each counted under its own."""
+    outbox = tmp_path / "outbox"
+    pieces = {"trusted": True, "method": "pose+correlative+icp+pieces", "drift_m": 0.05}
+    fits = {"trusted": True, "method": "pose+correlative+icp", "drift_m": 0.05}
+    results = {
+        "b1": {**B1_RESULT, "alignment": {**B1_RESULT["alignment"], **pieces}},
+        "b2": result_doc(alignment=(0.0, 0.0, 0.0)),
+    }
+    results["b2"]["alignment"].update(fits)
+    for bundle_id, doc in results.items():
+        (outbox / bundle_id).mkdir(parents=True)
+        (outbox / bundle_id / "result.yaml").write_text(yaml.safe_dump(doc))
+    assert bench.main([str(tiny_set), "--score-only", str(outbox), "--json"]) == 0
+    alignments = json.loads(capsys.readouterr().out)["alignments"]
+    assert list(alignments) == ["fits", "pieces"]  # in the order the map fits less
+    assert (alignments["pieces"]["matched"], alignments["pieces"]["false_positive"]) == (1, 1)
+    assert (alignments["fits"]["matched"], alignments["fits"]["observed"]) == (0, 1)
+    # The same drift correction past the threshold: drifted, not fits.
+    doc = {**results["b2"], "alignment": {**results["b2"]["alignment"], "drift_m": 0.25}}
+    (outbox / "b2" / "result.yaml").write_text(yaml.safe_dump(doc))
+    assert bench.main([str(tiny_set), "--score-only", str(outbox)]) == 0
+    text = capsys.readouterr().out
+    assert "per alignment" in text
+    assert [line.split()[0] for line in text.splitlines()[-2:]] == ["drifted", "pieces"]
+
+
 def test_bench_run_survives_failing_bundles(bench, tiny_set, tmp_path, capsys, monkeypatch):
     def fake_process(bundle_dir, config, *, bundle_id=None):
         if bundle_id == "b2":
