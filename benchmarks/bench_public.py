@@ -87,7 +87,7 @@ class Row:
     trust: str = "-"
     """``trusted``, ``partly`` (a share of the local map compared), ``untrusted`` or ``-``."""
     aligned: str = "-"
-    """How the local map was laid on the global map: see :func:`_aligned`."""
+    """How the local map was laid on the global map: see :func:`_alignment_class`."""
 
 
 class UsageError(Exception):
@@ -134,8 +134,8 @@ def _trust(doc: Any) -> str:
     return "partly" if isinstance(share, (int, float)) and share < 0.999 else "trusted"
 
 
-def _aligned(doc: Any) -> str:
-    """How a result's local map was laid on the global map: ``pieces`` (aligned in pieces),
+def _alignment_class(doc: Any) -> str:
+    """How a result's local map was laid on the global map: ``pieces`` (compared in pieces),
     ``drifted`` (whole, with a drift correction of ``pipeline._DRIFTED_M`` or more), ``fits``
     (whole, less), ``untrusted`` (not compared), ``-`` when the result does not say. The
     drifted and pieced bundles are where the pipeline's drift checks run, and where most of
@@ -145,7 +145,9 @@ def _aligned(doc: Any) -> str:
         return "-"
     if not alignment["trusted"]:
         return "untrusted"
-    if "pieces" in str(alignment.get("method", "")).split("+"):
+    # ``whole_score`` is written only for a map compared in pieces; ``+pieces`` in the method
+    # says only that pieces were tried (a map compared whole may have some).
+    if "whole_score" in alignment:
         return "pieces"
     drift_m = alignment.get("drift_m")
     return "drifted" if isinstance(drift_m, (int, float)) and drift_m >= _DRIFTED_M else "fits"
@@ -269,7 +271,16 @@ def score_outbox(
         score = score_bundle(truth, result, centre_slam_xy=centre)
         timings = dict(result.timings_ms)
         rows.append(
-            Row(case, score, result.status, seconds, None, timings, _trust(raw), _aligned(raw))
+            Row(
+                case,
+                score,
+                result.status,
+                seconds,
+                None,
+                timings,
+                _trust(raw),
+                _alignment_class(raw),
+            )
         )
     return rows
 
@@ -376,8 +387,8 @@ _ALIGNED_ORDER = ("fits", "drifted", "pieces", "untrusted", "-")
 
 
 def alignment_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
-    """The totals of the bundles of each way of alignment (:func:`_aligned`), failed ones
-    left out (their result does not say), in the order of ``_ALIGNED_ORDER``."""
+    """The totals of the bundles of each way of alignment (:func:`_alignment_class`), failed
+    ones left out (their result does not say), in the order of ``_ALIGNED_ORDER``."""
     totals = _group_totals([r for r in rows if r.status == "ok"], lambda row: row.aligned)
     return {key: totals[key] for key in _ALIGNED_ORDER if key in totals}
 

@@ -471,17 +471,38 @@ def test_bench_scores_an_existing_outbox(bench, tiny_set, tmp_path, capsys):
     assert "TOTAL 2 bundles, 1 failures" in capsys.readouterr().out
 
 
+WHOLE = {"trusted": True, "method": "pose+correlative+icp", "drift_m": 0.05}
+
+
+@pytest.mark.parametrize(
+    ("alignment", "expected"),
+    [
+        (WHOLE, "fits"),
+        ({**WHOLE, "drift_m": 0.25}, "drifted"),
+        # Compared in pieces (whole_score is written only then), whatever the drift.
+        ({**WHOLE, "method": "pose+correlative+icp+pieces", "whole_score": 0.5}, "pieces"),
+        ({**WHOLE, "method": "p+pieces", "whole_score": 0.5, "drift_m": 0.3}, "pieces"),
+        # Pieces tried, none trusted: compared whole.
+        ({**WHOLE, "method": "pose+correlative+icp+pieces", "trusted_pieces": 0}, "fits"),
+        ({**WHOLE, "trusted": False, "whole_score": 0.5}, "untrusted"),
+        ({"theta": 0.0, "tx": 0.0, "ty": 0.0}, "-"),
+    ],
+)
+def test_bench_tells_how_a_bundle_was_aligned(bench, alignment, expected):
+    assert bench._alignment_class({"alignment": alignment}) == expected
+
+
 def test_bench_totals_bundles_by_how_they_were_aligned(bench, tiny_set, tmp_path, capsys):
     """b1 aligned in pieces (its one change found, one false positive), b2 whole with a drift
-    correction under the drifted threshold (its change missed): each counted under its own."""
+    correction under the drifted threshold (its change missed): each counted under its own;
+    a bundle whose result is missing under none."""
     outbox = tmp_path / "outbox"
-    pieces = {"trusted": True, "method": "pose+correlative+icp+pieces", "drift_m": 0.05}
-    fits = {"trusted": True, "method": "pose+correlative+icp", "drift_m": 0.05}
+    pieces = {**WHOLE, "method": "pose+correlative+icp+pieces", "whole_score": 0.5}
     results = {
         "b1": {**B1_RESULT, "alignment": {**B1_RESULT["alignment"], **pieces}},
         "b2": result_doc(alignment=(0.0, 0.0, 0.0)),
     }
-    results["b2"]["alignment"].update(fits)
+    results["b2"]["alignment"].update(WHOLE)
     for bundle_id, doc in results.items():
         (outbox / bundle_id).mkdir(parents=True)
         (outbox / bundle_id / "result.yaml").write_text(yaml.safe_dump(doc))
@@ -490,13 +511,15 @@ def test_bench_totals_bundles_by_how_they_were_aligned(bench, tiny_set, tmp_path
     assert list(alignments) == ["fits", "pieces"]  # in the order the map fits less
     assert (alignments["pieces"]["matched"], alignments["pieces"]["false_positive"]) == (1, 1)
     assert (alignments["fits"]["matched"], alignments["fits"]["observed"]) == (0, 1)
-    # The same drift correction past the threshold: drifted, not fits.
-    doc = {**results["b2"], "alignment": {**results["b2"]["alignment"], "drift_m": 0.25}}
-    (outbox / "b2" / "result.yaml").write_text(yaml.safe_dump(doc))
     assert bench.main([str(tiny_set), "--score-only", str(outbox)]) == 0
     text = capsys.readouterr().out
-    assert "per alignment" in text
-    assert [line.split()[0] for line in text.splitlines()[-2:]] == ["drifted", "pieces"]
+    block = text[text.index("per alignment") :].splitlines()[1:]
+    assert [line.split()[:2] for line in block] == [["fits", "1"], ["pieces", "1"]]
+    (outbox / "b2" / "result.yaml").unlink()
+    assert bench.main([str(tiny_set), "--score-only", str(outbox), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["total"]["failures"] == 1
+    assert list(doc["alignments"]) == ["pieces"]
 
 
 def test_bench_run_survives_failing_bundles(bench, tiny_set, tmp_path, capsys, monkeypatch):
