@@ -269,17 +269,15 @@ def score_outbox(
             continue
         centre = local_map_centre(case.bundle_dir) if result.ok else None
         score = score_bundle(truth, result, centre_slam_xy=centre)
-        timings = dict(result.timings_ms)
         rows.append(
             Row(
                 case,
                 score,
                 result.status,
                 seconds,
-                None,
-                timings,
-                _trust(raw),
-                _alignment_class(raw),
+                timings_ms=dict(result.timings_ms),
+                trust=_trust(raw),
+                aligned=_alignment_class(raw),
             )
         )
     return rows
@@ -463,11 +461,8 @@ def format_report(doc: dict[str, Any]) -> str:
         lines.append("per kind:")
         for kind, k in kinds.items():
             lines.append(
-                f"  {kind:<14} {k['bundles']:>3} bundles  P {_fmt(k['precision'], '.3f')}  "
-                f"R {_fmt(k['recall'], '.3f')}  F1 {_fmt(k['f1'], '.3f')}  "
-                f"kind {_fmt(k['kind_accuracy'], '.3f')}  "
-                f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
-                f"{k['matched']}/{k['observed']} found, {k['false_positive']} FP, "
+                _group_line(kind, k, f"kind {_fmt(k['kind_accuracy'], '.3f')}  ")
+                + f"{k['matched']}/{k['observed']} found, {k['false_positive']} FP, "
                 f"{k['untrusted']} untrusted, {k['partly']} partly, {k['failures']} failed"
             )
     alignments = doc.get("alignments", {})
@@ -478,13 +473,20 @@ def format_report(doc: dict[str, Any]) -> str:
         )
         for name, k in alignments.items():
             lines.append(
-                f"  {name:<14} {k['bundles']:>3} bundles  P {_fmt(k['precision'], '.3f')}  "
-                f"R {_fmt(k['recall'], '.3f')}  F1 {_fmt(k['f1'], '.3f')}  "
-                f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
-                f"{k['matched']}/{k['observed']} found, "
+                _group_line(name, k) + f"{k['matched']}/{k['observed']} found, "
                 f"{k['observed'] - k['matched']} missed, {k['false_positive']} FP"
             )
     return "\n".join(lines)
+
+
+def _group_line(name: str, k: dict[str, Any], middle: str = "") -> str:
+    """The start of a group's line of totals (:func:`_group_totals`): its name, bundles,
+    precision, recall, F1, then ``middle``, then the alignment error's p90."""
+    return (
+        f"  {name:<14} {k['bundles']:>3} bundles  P {_fmt(k['precision'], '.3f')}  "
+        f"R {_fmt(k['recall'], '.3f')}  F1 {_fmt(k['f1'], '.3f')}  {middle}"
+        f"align p90 {_fmt(k['alignment_error_p90_m'], '.3f')} m  "
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
