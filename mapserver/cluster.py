@@ -57,12 +57,16 @@ def cluster_mask(
     evidence: NDArray[np.bool_] | None = None,
     min_evidence: float = 0.5,
     min_evidence_m2: float = math.inf,
+    whole: NDArray[np.bool_] | None = None,
+    min_whole_area_m2: float = 0.0,
     engine: Engine = "grid",
 ) -> list[Difference]:
     """Group the True pixels of ``mask`` (on ``grid``) into obstacles with DBSCAN.
 
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
-    ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``evidence``
+    ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``whole`` (same shape as
+    ``mask``: the pixels of small things seen changed whole), a smaller cluster is kept when at
+    least half of its pixels are in it and it covers ``min_whole_area_m2``. With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
     its pixels are in it, or when those cover ``min_evidence_m2`` and the area floor or more
     however many do not, and reported as those and its pixels within ``eps_m`` of them (the
@@ -92,7 +96,11 @@ def cluster_mask(
         members = labels == label
         pts = xy[members]
         area = len(pts) * cell_m2
-        if _short_of(area, min_area_m2):
+        if _short_of(area, min_area_m2) and not (
+            whole is not None
+            and not _short_of(area, min_whole_area_m2)
+            and 2 * np.count_nonzero(whole[rows[members], cols[members]]) >= len(pts)
+        ):
             continue
         if evidence is not None:
             shown = evidence[rows[members], cols[members]]

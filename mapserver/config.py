@@ -137,6 +137,12 @@ class DiffConfig(_Frozen):
     for 4 more false positives (with it, 10 for 4: a removal of a 0.1 m local map whose evidence
     was 5-7 of its cells); 0.1 found 4 for 1; 0.04 14 for 12, 0.025 20 for 29 (the evidence of a
     face seen free a few cells deep)."""
+    small_structure_m: float = Field(1.0, ge=0)
+    """A removed obstacle smaller than ``min_removed_cells`` is reported (from
+    ``min_local_cells`` on, with its evidence) when half or more of its cells lie on a small
+    structure of the global map seen gone whole: no wider than this either way, three of its
+    cells at least, half of them seen free, no wall seen within 0.1 m, no unseen inside beside
+    it (an object the global map draws as a few cells). 0 turns this off."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

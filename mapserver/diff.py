@@ -705,6 +705,65 @@ def _reached(
     return seen, seen_deep
 
 
+def small_structures_gone(
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    removed: BoolArray,
+    *,
+    resolution: float,
+    max_extent_m: float,
+    min_cells: float,
+    min_share: float,
+    clear_m: float,
+    unseen_m: float,
+) -> BoolArray:
+    """The cells of ``removed`` on small structures the robot saw gone whole: each a component
+    of the global map's occupied cells (8-connected) at least ``min_cells`` large and no wider
+    than ``max_extent_m`` either way, at least ``min_share`` of whose cells are in ``removed``,
+    with no wall of the local map within ``clear_m`` of any of them (nothing seen standing
+    there), and no unknown part of the global map ``unseen_m`` thick within twice ``unseen_m``
+    of it: a short dash of a structure's face, the inside of which the map never saw, is not a
+    thing of its own (a real map draws a block's face seen from afar as a dotted line). An
+    object drawn as a few cells counts; a bite out of a wall's face, a part of a large
+    component, does not. (H, W) bool, True only on cells of ``removed``.
+    """
+    out = np.zeros(removed.shape, bool)
+    box = box_around(removed, math.ceil((max_extent_m + 2 * unseen_m) / resolution) + 1)
+    if box is None:
+        return out
+    occupied = (global_state[box] == OCCUPIED).view(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied, connectivity=8)
+    widest = max_extent_m / resolution
+    size = stats[:, cv2.CC_STAT_AREA]
+    cand = removed[box]
+    keep = (
+        (stats[:, cv2.CC_STAT_WIDTH] <= widest)
+        & (stats[:, cv2.CC_STAT_HEIGHT] <= widest)
+        & (size >= min_cells)
+        & (np.bincount(labels[cand], minlength=n) >= min_share * size)
+    )
+    keep[0] = False  # the background
+    if not keep.any():
+        return out
+    k = max(1, round(clear_m / resolution))
+    walls = cv2.dilate(
+        (local_state[box] == OCCUPIED).view(np.uint8), np.ones((2 * k + 1,) * 2, np.uint8)
+    )
+    keep &= np.bincount(labels[walls > 0], minlength=n) == 0
+    if keep.any() and unseen_m > 0:
+        unknown = (global_state[box] == UNKNOWN).view(np.uint8)
+        thick = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) * resolution >= unseen_m
+        reach = max(1, round(2 * unseen_m / resolution))
+        around = np.ones((2 * reach + 1,) * 2, np.uint8)
+        for label in np.flatnonzero(keep):
+            x, y, w, h = (int(v) for v in stats[label, :4])
+            win = (slice(max(y - reach, 0), y + h + reach), slice(max(x - reach, 0), x + w + reach))
+            near = cv2.dilate((labels[win] == label).view(np.uint8), around) > 0
+            keep[label] = not (thick[win] & near).any()
+    out[box] = cand & keep[labels]
+    return out
+
+
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     """``mask`` without its 8-connected components smaller than ``min_pixels``."""
     out = mask.copy()

@@ -29,6 +29,7 @@ from mapserver.diff import (
     misfit_tolerance,
     raw_differences,
     removal_evidence,
+    small_structures_gone,
 )
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
@@ -878,3 +879,76 @@ def test_the_depth_asked_of_a_removal_grows_with_its_distance_from_the_route() -
     assert off is not None
     assert 0.5 - 0.35 <= off.of_box((slice(40, 41), slice(89, 90)))[0, 0] <= 0.5
     assert route_distance(np.zeros((0, 2)), g.shape, RES) is None
+
+
+def _small_world() -> tuple[np.ndarray, np.ndarray]:
+    """A free room (global and local) 5 m x 5 m at 0.05 m."""
+    g = np.full((100, 100), FREE, np.uint8)
+    return g, g.copy()
+
+
+def _gone(g: np.ndarray, loc: np.ndarray) -> np.ndarray:
+    removed = (g == OCCUPIED) & (loc == FREE)
+    return small_structures_gone(
+        g,
+        loc,
+        removed,
+        resolution=RES,
+        max_extent_m=1.0,
+        min_cells=3,
+        min_share=0.5,
+        clear_m=0.1,
+        unseen_m=0.25,
+    )
+
+
+def test_a_small_structure_seen_gone_whole_is_marked_and_its_lookalikes_are_not() -> None:
+    """An object the global map draws as five cells, seen free: all five. Not: the same object
+    with a local wall 0.1 m from it (something stands there), or with only two of its cells
+    seen free; a speck of two cells; a line 1.5 m long seen free (no small thing: the usual
+    floor judges it)."""
+    g, loc = _small_world()
+    g[40:45, 40] = OCCUPIED  # 5 cells, 0.05 m x 0.25 m
+    assert _gone(g, loc).sum() == 5
+    loc[40:45, 42] = OCCUPIED  # a wall seen 0.1 m beside it
+    assert not _gone(g, loc).any()
+    loc[40:45, 42] = FREE
+    loc[42:45, 40] = UNKNOWN  # 2 of its 5 cells seen free
+    assert not _gone(g, loc).any()
+    g, loc = _small_world()
+    g[40:42, 40] = OCCUPIED  # a speck of 2 cells
+    assert not _gone(g, loc).any()
+    g, loc = _small_world()
+    g[60, 10:40] = OCCUPIED  # a line of 30 cells
+    assert not _gone(g, loc).any()
+
+
+@pytest.mark.parametrize(("inside_px", "marked"), [(2, 5), (12, 0)])
+def test_a_dash_on_the_face_of_an_unseen_inside_is_no_structure_of_its_own(
+    inside_px: int, marked: int
+) -> None:
+    """Five cells along the edge of a part the global map never saw: a line of grey 2 cells
+    wide (a wall drawn grey, the dash its dark part) leaves them a thing of their own; an
+    unseen inside 0.6 m deep (a block's face drawn as a dotted line) does not."""
+    g, loc = _small_world()
+    g[30 : 30 + inside_px, 30:60] = UNKNOWN
+    g[30 + inside_px, 40:45] = OCCUPIED
+    assert _gone(g, loc).sum() == marked
+
+
+def test_a_small_cluster_is_kept_when_most_of_it_is_a_structure_seen_gone_whole() -> None:
+    """Under the area floor (8 cells), a cluster of 5 is kept when 3 or more of its cells are
+    in ``whole`` (and it covers ``min_whole_area_m2``), dropped otherwise."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    mask = np.zeros(grid.shape, bool)
+    mask[40:45, 40] = True
+    floor = 8 * 0.05**2
+    kw = {"eps_m": 0.3, "min_samples": 3, "min_area_m2": floor}
+    assert cluster_mask(mask, grid, "removed", **kw) == []
+    whole = np.zeros(grid.shape, bool)
+    whole[40:43, 40] = True
+    (found,) = cluster_mask(mask, grid, "removed", whole=whole, **kw)
+    assert found.pixels == 5
+    assert cluster_mask(mask, grid, "removed", whole=whole, min_whole_area_m2=floor, **kw) == []
+    whole[42, 40] = False  # 2 of 5
+    assert cluster_mask(mask, grid, "removed", whole=whole, **kw) == []

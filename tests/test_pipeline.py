@@ -28,7 +28,7 @@ from worlds import (
 from mapserver import diff as diff_stage
 from mapserver import pipeline, synth
 from mapserver.align import make_view
-from mapserver.config import Config, PipelineConfig, RoiConfig
+from mapserver.config import Config, DiffConfig, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
@@ -111,6 +111,22 @@ def test_removed_obstacle_is_found(tmp_path: Path, world) -> None:
     assert len(removed) == 1
     assert removed[0]["centroid"]["x"] == pytest.approx(10.3, abs=0.2)
     assert removed[0]["centroid"]["y"] == pytest.approx(7.3, abs=0.2)
+
+
+def test_an_object_drawn_as_five_cells_seen_gone_is_found(tmp_path: Path, world) -> None:
+    """A small object the global map draws as five cells (0.05 m x 0.25 m), gone in the robot's
+    map: under ``min_removed_cells`` (8), reported as the small structure seen gone whole it
+    is; with ``small_structure_m: 0``, not."""
+    before = changed(world, [("add", 12.0, 9.0, 12.05, 9.15)])
+    straight = Transform2D(0.0, 3.0, 8.0)  # slam cells on the global map's lattice
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=straight)
+    path = write_bundle(tmp_path / "small", before, cut)
+    found = process_bundle(path, Config()).result["differences"]
+    assert [(d["kind"], d["pixels"]) for d in found] == [("removed", 5)]
+    assert found[0]["centroid"]["x"] == pytest.approx(12.03, abs=0.05)
+    assert found[0]["centroid"]["y"] == pytest.approx(9.08, abs=0.05)
+    off = Config(pipeline=PipelineConfig(diff=DiffConfig(small_structure_m=0.0)))
+    assert process_bundle(path, off).result["differences"] == []
 
 
 def test_a_misaligned_bundle_reports_no_differences(tmp_path: Path, world) -> None:
@@ -284,6 +300,7 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
     local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
     piece = np.zeros((100, 100), bool)
     piece[40:42, 40:45] = True  # 10 cells, 0.025 m2
+    states = (local.state, local.state)  # no structure drawn: nothing small seen gone whole
     config = Config()
     assert config.pipeline.diff.drifted_min_area_m2 > 10 * 0.05**2
     for kind in ("added", "removed"):
@@ -291,9 +308,13 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
             added=piece if kind == "added" else np.zeros_like(piece),
             removed=piece if kind == "removed" else np.zeros_like(piece),
         )
-        found = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=True)
+        found = pipeline._cluster_masks(
+            masks, piece, grid, config, local, states, 0.05, drifted=True
+        )
         assert [d.kind for d in found] == (["removed"] if kind == "removed" else [])
-        still = pipeline._cluster_masks(masks, piece, grid, config, local, drifted=False)
+        still = pipeline._cluster_masks(
+            masks, piece, grid, config, local, states, 0.05, drifted=False
+        )
         assert [d.kind for d in still] == [kind]
 
 
@@ -302,12 +323,15 @@ def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported(
     12 cells are reported, 11 are not (whatever the rounding of 12 x 0.05 x 0.05)."""
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    states = (local.state, local.state)
     config = Config()
     for n, kinds in ((12, ["added"]), (11, [])):
         face = np.zeros((100, 100), bool)
         face[40, 40 : 40 + n] = True  # one row of n cells, as a face seen from one side
         masks = diff_stage.DiffMasks(added=face, removed=np.zeros_like(face))
-        found = pipeline._cluster_masks(masks, face, grid, config, local, drifted=True)
+        found = pipeline._cluster_masks(
+            masks, face, grid, config, local, states, 0.05, drifted=True
+        )
         assert [d.kind for d in found] == kinds
 
 
