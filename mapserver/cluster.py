@@ -58,6 +58,7 @@ def cluster_mask(
     min_evidence: float = 0.5,
     min_evidence_m2: float = math.inf,
     whole: NDArray[np.bool_] | None = None,
+    min_whole_share: float = 0.5,
     min_whole_area_m2: float = 0.0,
     engine: Engine = "grid",
 ) -> list[Difference]:
@@ -65,8 +66,9 @@ def cluster_mask(
 
     Pixels within ``eps_m`` of each other join one obstacle; clusters smaller than
     ``min_area_m2`` are dropped, and so is DBSCAN's noise. With ``whole`` (same shape as
-    ``mask``: the pixels of small things seen changed whole), a smaller cluster is kept when at
-    least half of its pixels are in it and it covers ``min_whole_area_m2``. With ``evidence``
+    ``mask``: the pixels of small things seen changed whole), a smaller cluster passes that
+    floor when at least ``min_whole_share`` of its pixels are in it and it covers
+    ``min_whole_area_m2`` (the evidence test below still applies). With ``evidence``
     (same shape as ``mask``), a cluster is kept only when at least the share ``min_evidence`` of
     its pixels are in it, or when those cover ``min_evidence_m2`` and the area floor or more
     however many do not, and reported as those and its pixels within ``eps_m`` of them (the
@@ -99,7 +101,7 @@ def cluster_mask(
         if _short_of(area, min_area_m2) and not (
             whole is not None
             and not _short_of(area, min_whole_area_m2)
-            and 2 * np.count_nonzero(whole[rows[members], cols[members]]) >= len(pts)
+            and np.count_nonzero(whole[rows[members], cols[members]]) >= min_whole_share * len(pts)
         ):
             continue
         if evidence is not None:

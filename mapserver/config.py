@@ -141,8 +141,9 @@ class DiffConfig(_Frozen):
     """A removed obstacle smaller than ``min_removed_cells`` is reported (from
     ``min_local_cells`` on, with its evidence) when half or more of its cells lie on a small
     structure of the global map seen gone whole: no wider than this either way, three of its
-    cells at least, half of them seen free, no wall seen within 0.1 m, no unseen inside beside
-    it (an object the global map draws as a few cells). 0 turns this off."""
+    cells at least, half of them among the removed cells, no local wall within 0.1 m, no part
+    of the global map unknown 0.25 m deep within 0.5 m of it (an object the global map draws
+    as a few cells, not a dash of a face whose inside the map never saw). 0 turns this off."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

@@ -711,24 +711,34 @@ def small_structures_gone(
     removed: BoolArray,
     *,
     resolution: float,
+    smaller_than_px: int,
     max_extent_m: float,
-    min_cells: float,
+    min_px: float,
     min_share: float,
     clear_m: float,
     unseen_m: float,
 ) -> BoolArray:
-    """The cells of ``removed`` on small structures the robot saw gone whole: each a component
-    of the global map's occupied cells (8-connected) at least ``min_cells`` large and no wider
-    than ``max_extent_m`` either way, at least ``min_share`` of whose cells are in ``removed``,
-    with no wall of the local map within ``clear_m`` of any of them (nothing seen standing
-    there), and no unknown part of the global map ``unseen_m`` thick within twice ``unseen_m``
-    of it: a short dash of a structure's face, the inside of which the map never saw, is not a
-    thing of its own (a real map draws a block's face seen from afar as a dotted line). An
-    object drawn as a few cells counts; a bite out of a wall's face, a part of a large
-    component, does not. (H, W) bool, True only on cells of ``removed``.
+    """The cells of ``removed`` on small structures the robot saw gone whole, around the pieces
+    of ``removed`` under ``smaller_than_px`` cells (8-connected; a larger piece needs no help).
+
+    A structure is a component of the global map's occupied cells (8-connected) of at least
+    ``min_px`` cells of this grid, no wider than ``max_extent_m`` either way, at least
+    ``min_share`` of whose cells are in ``removed``, with no wall of the local map in the square
+    of half-width ``clear_m`` around any of its cells (nothing seen standing there), and no
+    cell of the global map's unknown area ``unseen_m`` deep (that far from any known cell) in
+    the square of half-width ``2 * unseen_m`` around it: a short dash of a structure's face
+    whose inside the map never saw is not a thing of its own (a real map draws a block's face
+    seen from afar as a dotted line). An object drawn as a few cells counts; a bite out of a
+    wall's face, a part of a large component, does not. (H, W) bool, True only on cells of
+    ``removed``; the inputs are not modified.
     """
     out = np.zeros(removed.shape, bool)
-    box = box_around(removed, math.ceil((max_extent_m + 2 * unseen_m) / resolution) + 1)
+    pieces = drop_small(removed, min_pixels=smaller_than_px)
+    small = removed & ~pieces
+    reach = max(1, round(2 * unseen_m / resolution))
+    depth_px = unseen_m / resolution
+    pad = math.ceil(depth_px) + 1  # the unknown's depth measured exactly up to depth_px
+    box = box_around(small, math.ceil(max_extent_m / resolution) + reach + pad + 1)
     if box is None:
         return out
     occupied = (global_state[box] == OCCUPIED).view(np.uint8)
@@ -739,27 +749,30 @@ def small_structures_gone(
     keep = (
         (stats[:, cv2.CC_STAT_WIDTH] <= widest)
         & (stats[:, cv2.CC_STAT_HEIGHT] <= widest)
-        & (size >= min_cells)
+        & (size >= min_px)
         & (np.bincount(labels[cand], minlength=n) >= min_share * size)
+        & (np.bincount(labels[small[box]], minlength=n) > 0)
     )
     keep[0] = False  # the background
-    if not keep.any():
-        return out
+    h, w = labels.shape
     k = max(1, round(clear_m / resolution))
-    walls = cv2.dilate(
-        (local_state[box] == OCCUPIED).view(np.uint8), np.ones((2 * k + 1,) * 2, np.uint8)
-    )
-    keep &= np.bincount(labels[walls > 0], minlength=n) == 0
-    if keep.any() and unseen_m > 0:
-        unknown = (global_state[box] == UNKNOWN).view(np.uint8)
-        thick = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) * resolution >= unseen_m
-        reach = max(1, round(2 * unseen_m / resolution))
-        around = np.ones((2 * reach + 1,) * 2, np.uint8)
-        for label in np.flatnonzero(keep):
-            x, y, w, h = (int(v) for v in stats[label, :4])
-            win = (slice(max(y - reach, 0), y + h + reach), slice(max(x - reach, 0), x + w + reach))
-            near = cv2.dilate((labels[win] == label).view(np.uint8), around) > 0
-            keep[label] = not (thick[win] & near).any()
+    for label in np.flatnonzero(keep):
+        x, y, cw, ch = (int(v) for v in stats[label, :4])
+        grow = max(k, reach) + pad
+        win = (
+            slice(max(y - grow, 0), min(y + ch + grow, h)),
+            slice(max(x - grow, 0), min(x + cw + grow, w)),
+        )
+        own = (labels[win] == label).view(np.uint8)
+        walls = local_state[box][win] == OCCUPIED
+        if (cv2.dilate(own, np.ones((2 * k + 1,) * 2, np.uint8)).view(bool) & walls).any():
+            keep[label] = False
+            continue
+        if unseen_m > 0:
+            unknown = (global_state[box][win] == UNKNOWN).view(np.uint8)
+            deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= depth_px
+            near = cv2.dilate(own, np.ones((2 * reach + 1,) * 2, np.uint8)).view(bool)
+            keep[label] = not (deep & near).any()
     out[box] = cand & keep[labels]
     return out
 

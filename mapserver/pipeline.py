@@ -561,6 +561,7 @@ def _cluster_masks(
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
     added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
+    removed_floor = max(d.min_local_cells, d.min_removed_cells)
     whole = None
     if d.small_structure_m > 0:
         global_state, local_state = states
@@ -569,8 +570,9 @@ def _cluster_masks(
             local_state,
             masks.removed,
             resolution=grid.resolution,
+            smaller_than_px=removed_floor,
             max_extent_m=d.small_structure_m,
-            min_cells=_SMALL_MIN_CELLS * (global_res_m / grid.resolution) ** 2,
+            min_px=_SMALL_MIN_CELLS * (global_res_m / grid.resolution) ** 2,
             min_share=_SMALL_SEEN_SHARE,
             clear_m=_SMALL_CLEAR_M,
             unseen_m=_SMALL_UNSEEN_M,
@@ -581,7 +583,7 @@ def _cluster_masks(
         (
             "removed",
             masks.removed,
-            max(d.min_local_cells, d.min_removed_cells),
+            removed_floor,
             d.min_area_m2,
             removal_evidence,
             whole,
@@ -610,8 +612,9 @@ def _cluster_masks(
 # coarse map's single cells seen free: seven false removals on one bundle of a 0.1 m map), half
 # of them (_SMALL_SEEN_SHARE) in the removed mask, no local wall within _SMALL_CLEAR_M (the
 # differences' cell-and-a-bit: nothing seen standing), and no part of the global map unknown
-# _SMALL_UNSEEN_M deep within twice that of it (a dash of a dotted face, the inside behind it
-# never seen: two false removals of 4 cells on two drift sets). Session 30, over the 64
+# _SMALL_UNSEEN_M deep (that far from any known cell) within twice that of it (a dash of a
+# dotted face, the inside behind it never seen: two false removals of 4 cells on two drift
+# sets). Session 30, over the 64
 # generated sets and public, public-realism (1144 bundles): 34 more changes found for 2 more
 # false positives; the changes are objects a map draws as 4-7 cells once the 0.25 m side
 # tolerance and the evidence have taken their share (the grey case's objects drawn as a few

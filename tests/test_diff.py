@@ -894,8 +894,9 @@ def _gone(g: np.ndarray, loc: np.ndarray) -> np.ndarray:
         loc,
         removed,
         resolution=RES,
+        smaller_than_px=8,
         max_extent_m=1.0,
-        min_cells=3,
+        min_px=3,
         min_share=0.5,
         clear_m=0.1,
         unseen_m=0.25,
@@ -909,12 +910,20 @@ def test_a_small_structure_seen_gone_whole_is_marked_and_its_lookalikes_are_not(
     floor judges it)."""
     g, loc = _small_world()
     g[40:45, 40] = OCCUPIED  # 5 cells, 0.05 m x 0.25 m
+    g0, loc0 = g.copy(), loc.copy()
     assert _gone(g, loc).sum() == 5
+    assert (g == g0).all() and (loc == loc0).all()
+    loc[42:45, 40] = UNKNOWN  # 2 of the 5 seen free: short of half
+    assert not _gone(g, loc).any()
+    g[44, 40] = FREE
+    assert _gone(g, loc).sum() == 2  # 2 of 4: half
+    g, loc = _small_world()
+    g[40:45, 40] = OCCUPIED
     loc[40:45, 42] = OCCUPIED  # a wall seen 0.1 m beside it
     assert not _gone(g, loc).any()
     loc[40:45, 42] = FREE
-    loc[42:45, 40] = UNKNOWN  # 2 of its 5 cells seen free
-    assert not _gone(g, loc).any()
+    loc[40:45, 43] = OCCUPIED  # 0.15 m beside it: beyond the 0.1 m
+    assert _gone(g, loc).sum() == 5
     g, loc = _small_world()
     g[40:42, 40] = OCCUPIED  # a speck of 2 cells
     assert not _gone(g, loc).any()
@@ -923,13 +932,14 @@ def test_a_small_structure_seen_gone_whole_is_marked_and_its_lookalikes_are_not(
     assert not _gone(g, loc).any()
 
 
-@pytest.mark.parametrize(("inside_px", "marked"), [(2, 5), (12, 0)])
+@pytest.mark.parametrize(("inside_px", "marked"), [(2, 5), (8, 5), (9, 0), (12, 0)])
 def test_a_dash_on_the_face_of_an_unseen_inside_is_no_structure_of_its_own(
     inside_px: int, marked: int
 ) -> None:
     """Five cells along the edge of a part the global map never saw: a line of grey 2 cells
-    wide (a wall drawn grey, the dash its dark part) leaves them a thing of their own; an
-    unseen inside 0.6 m deep (a block's face drawn as a dotted line) does not."""
+    wide (a wall drawn grey, the dash its dark part) leaves them a thing of their own, and so
+    does a band 8 cells wide (no cell of it 0.25 m from a known one); a band 9 wide (its middle
+    row 5 cells from either side) or 12 (a block's face drawn as a dotted line) does not."""
     g, loc = _small_world()
     g[30 : 30 + inside_px, 30:60] = UNKNOWN
     g[30 + inside_px, 40:45] = OCCUPIED
@@ -952,3 +962,7 @@ def test_a_small_cluster_is_kept_when_most_of_it_is_a_structure_seen_gone_whole(
     assert cluster_mask(mask, grid, "removed", whole=whole, min_whole_area_m2=floor, **kw) == []
     whole[42, 40] = False  # 2 of 5
     assert cluster_mask(mask, grid, "removed", whole=whole, **kw) == []
+    # Kept past the floor, it still needs its removal evidence.
+    whole[40:45, 40] = True
+    none = np.zeros(grid.shape, bool)
+    assert cluster_mask(mask, grid, "removed", whole=whole, evidence=none, **kw) == []

@@ -318,6 +318,25 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
         assert [d.kind for d in still] == [kind]
 
 
+@pytest.mark.parametrize(("global_res_m", "kinds"), [(0.05, ["removed"]), (0.1, [])])
+def test_a_small_structure_is_counted_in_the_global_maps_cells(
+    global_res_m: float, kinds: list[str]
+) -> None:
+    """An object of 4 work cells (0.05 m) seen gone whole: four cells of a 0.05 m global map,
+    reported; one cell of a 0.1 m map (a coarse map's speck), not: three global cells at
+    least."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    g = local.state.copy()
+    g[40:42, 40:42] = OCCUPIED
+    gone = (g == OCCUPIED) & (local.state == FREE)
+    masks = diff_stage.DiffMasks(added=np.zeros_like(gone), removed=gone)
+    found = pipeline._cluster_masks(
+        masks, gone, grid, Config(), local, (g, local.state), global_res_m
+    )
+    assert [d.kind for d in found] == kinds
+
+
 def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported() -> None:
     """The drifted floor is 0.03 m2, 12 cells at 0.05 m (a box's face seen from one side):
     12 cells are reported, 11 are not (whatever the rounding of 12 x 0.05 x 0.05)."""
