@@ -98,10 +98,8 @@ def cluster_mask(
         members = labels == label
         pts = xy[members]
         area = len(pts) * cell_m2
-        if _short_of(area, min_area_m2) and not (
-            whole is not None
-            and not _short_of(area, min_whole_area_m2)
-            and np.count_nonzero(whole[rows[members], cols[members]]) >= min_whole_share * len(pts)
+        if _short_of(area, min_area_m2) and not _whole_enough(
+            whole, rows[members], cols[members], area, min_whole_share, min_whole_area_m2
         ):
             continue
         if evidence is not None:
@@ -133,6 +131,23 @@ def cluster_mask(
             )
         )
     return out
+
+
+def _whole_enough(
+    whole: NDArray[np.bool_] | None,
+    rows: IntArray,
+    cols: IntArray,
+    area_m2: float,
+    min_share: float,
+    floor_m2: float,
+) -> bool:
+    """Whether a cluster under the area floor (its pixels at ``rows``, ``cols``) is a small
+    thing seen changed whole: ``min_share`` of its pixels in ``whole``, ``floor_m2`` covered."""
+    return (
+        whole is not None
+        and not _short_of(area_m2, floor_m2)
+        and int(np.count_nonzero(whole[rows, cols])) >= min_share * len(rows)
+    )
 
 
 def _short_of(area_m2: float, floor_m2: float) -> bool:

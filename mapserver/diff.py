@@ -733,15 +733,15 @@ def small_structures_gone(
     ``removed``; the inputs are not modified.
     """
     out = np.zeros(removed.shape, bool)
-    pieces = drop_small(removed, min_pixels=smaller_than_px)
-    small = removed & ~pieces
+    small = removed & ~drop_small(removed, min_pixels=smaller_than_px)
     reach = max(1, round(2 * unseen_m / resolution))
     depth_px = unseen_m / resolution
     pad = math.ceil(depth_px) + 1  # the unknown's depth measured exactly up to depth_px
     box = box_around(small, math.ceil(max_extent_m / resolution) + reach + pad + 1)
     if box is None:
         return out
-    occupied = (global_state[box] == OCCUPIED).view(np.uint8)
+    g_state, l_state = global_state[box], local_state[box]
+    occupied = (g_state == OCCUPIED).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied, connectivity=8)
     widest = max_extent_m / resolution
     size = stats[:, cv2.CC_STAT_AREA]
@@ -754,25 +754,19 @@ def small_structures_gone(
         & (np.bincount(labels[small[box]], minlength=n) > 0)
     )
     keep[0] = False  # the background
-    h, w = labels.shape
     k = max(1, round(clear_m / resolution))
+    clear = np.ones((2 * k + 1,) * 2, np.uint8)
+    around = np.ones((2 * reach + 1,) * 2, np.uint8)
     for label in np.flatnonzero(keep):
-        x, y, cw, ch = (int(v) for v in stats[label, :4])
-        grow = max(k, reach) + pad
-        win = (
-            slice(max(y - grow, 0), min(y + ch + grow, h)),
-            slice(max(x - grow, 0), min(x + cw + grow, w)),
-        )
+        x, y, w, h = (int(v) for v in stats[label, :4])
+        win = grown((slice(y, y + h), slice(x, x + w)), max(k, reach) + pad, labels.shape)
         own = (labels[win] == label).view(np.uint8)
-        walls = local_state[box][win] == OCCUPIED
-        if (cv2.dilate(own, np.ones((2 * k + 1,) * 2, np.uint8)).view(bool) & walls).any():
+        if (cv2.dilate(own, clear).view(bool) & (l_state[win] == OCCUPIED)).any():
             keep[label] = False
-            continue
-        if unseen_m > 0:
-            unknown = (global_state[box][win] == UNKNOWN).view(np.uint8)
+        elif unseen_m > 0:
+            unknown = (g_state[win] == UNKNOWN).view(np.uint8)
             deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= depth_px
-            near = cv2.dilate(own, np.ones((2 * reach + 1,) * 2, np.uint8)).view(bool)
-            keep[label] = not (deep & near).any()
+            keep[label] = not (deep & cv2.dilate(own, around).view(bool)).any()
     out[box] = cand & keep[labels]
     return out
 

@@ -614,11 +614,11 @@ def _cluster_masks(
 # differences' cell-and-a-bit: nothing seen standing), and no part of the global map unknown
 # _SMALL_UNSEEN_M deep (that far from any known cell) within twice that of it (a dash of a
 # dotted face, the inside behind it never seen: two false removals of 4 cells on two drift
-# sets). Session 30, over the 64
-# generated sets and public, public-realism (1144 bundles): 34 more changes found for 2 more
-# false positives; the changes are objects a map draws as 4-7 cells once the 0.25 m side
-# tolerance and the evidence have taken their share (the grey case's objects drawn as a few
-# dark cells among grey ones, boxes of 0.1-0.2 m). Without the unknown rule, 34 for 7.
+# sets). Session 30, over the 64 generated sets and public, public-realism (1144 bundles): 34
+# more changes found for 2 more false positives; the changes are objects a map draws as 4-7
+# cells once the 0.25 m side tolerance and the evidence have taken their share (the grey
+# case's objects drawn as a few dark cells among grey ones, boxes of 0.1-0.2 m). Without the
+# unknown rule, 34 for 7.
 _SMALL_MIN_CELLS = 3
 _SMALL_SEEN_SHARE = 0.5
 _SMALL_CLEAR_M = 0.1
