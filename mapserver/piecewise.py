@@ -501,7 +501,7 @@ def another_pass_explains(
     local: OccupancyMap,
     pieces: Pieces,
     xy: FloatArray,
-    fits: Callable[[FloatArray], NDArray[np.bool_]],
+    fits: Callable[[FloatArray, float], NDArray[np.bool_]],
     *,
     reach_m: float = 12.0,
     min_gap_m: float = 0.5,
@@ -519,7 +519,9 @@ def another_pass_explains(
     other aligned piece (``aligned``, trusted or left out of the chain: a chain break leaves
     out pieces that are mostly right) whose run came within ``reach_m`` of them and that puts
     them ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
-    building (``fits``, per nav2 point), that pass saw them, and they are no change.
+    building (``fits(points, run_m)``, per nav2 point; ``run_m``: how near that pass's run
+    came to them, metres, as the error of what it drew grows with the length of its rays),
+    that pass saw them, and they are no change.
 
     A piece next on the route shares this one's junction, and two trusted neighbours meet there
     within the chain's agreement; it counts only where its run came nearer to the cells than
@@ -558,7 +560,7 @@ def another_pass_explains(
             continue
         if float(apart(owner.nav2_from_slam, q.nav2_from_slam, centre)[0]) < min_gap_m:
             continue
-        if float(np.mean(fits(q.nav2_from_slam.apply(slam)))) < share:
+        if float(np.mean(fits(q.nav2_from_slam.apply(slam), q_m))) < share:
             continue
         if open_there is not None:
             back = q.nav2_from_slam.inverse().apply(xy)

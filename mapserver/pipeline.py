@@ -729,6 +729,19 @@ _PASS_NEAR_RATIO = 4.0
 # by 0.004-0.006.
 _FOLD_LINE_SPREAD_M = 0.05
 _FOLD_LINE_CELLS = 0.6
+# A line a pass drew lands farther off the wall the farther that pass drove from it: its
+# piece's transform is fitted mostly on the walls near its run, and a heading error of that
+# transform (or of the scans that drew the line) moves what its rays drew at range r by r
+# times that angle. So an added line lands within twice the tolerance plus the distance from
+# that pass's run to it times sin(_PASS_HEADING_DEG) (1 degree: 0.21 m more at 12 m, 0.35 m
+# at 20 m). Not for a difference with a depth of its own, which must land within the
+# tolerance: a real box near a wall laid onto it by a far pass's transform (every added
+# difference: 21 changes fewer found for 19 false positives fewer over 41 sets with pieces).
+# Session 31 (s20_1505's gen-00: a 20 m lidar's pass drew a hall's wall 1-3 m into the open,
+# a slanted line whose far pass laid it 0.2-0.5 m from the wall): over the 41 generated and
+# public sets that have bundles aligned in pieces, 10 false positives fewer for 1 change
+# fewer found (0.5 degrees: 6 fewer for none; 2 degrees: 11 fewer for 3).
+_PASS_HEADING_DEG = 1.0
 # A fold seen in the cells themselves: a removed difference _FOLD_DEPTH_M or more inside the
 # building's structure (a wall or block 0.8 m thick or more), most of whose bounding local
 # walls (_FOLD_BEHIND_SHARE of at least _FOLD_MIN_WALL_M of wall cells, counted as cells times
@@ -902,8 +915,9 @@ def _seen_on_another_pass(
     """Whether another pass of a route aligned in ``pieces``, its run within ``reach_m()`` of
     them (the sensor's), saw ``diff``'s cells (at nav2 points ``xy``, (N, 2), on ``view``'s
     grid) as no change: an added one's on a global wall (``near_wall(xy, distance)``: within
-    twice the differences' tolerance for a line, within the tolerance for one that spreads
-    across itself, ``_FOLD_LINE_SPREAD_M``; that pass, past half the reach, no more than
+    twice the differences' tolerance for a line, more the farther that pass's run came
+    (``_PASS_HEADING_DEG``), within the tolerance for one that spreads across itself,
+    ``_FOLD_LINE_SPREAD_M``; that pass, past half the reach, no more than
     ``_PASS_NEAR_RATIO`` times as far from them as the robot's own run), a removed one's on
     the open floor (free, off every wall by twice the tolerance) unless that pass drew the
     structure's place open too (:func:`_open_in`: both passes saw it gone)."""
@@ -912,17 +926,20 @@ def _seen_on_another_pass(
 
     tolerance_m = config.pipeline.diff.tolerance_m
     # A pass's wall lands within twice the differences' tolerance (the drift left in its
-    # piece); an added difference with a depth of its own, not a line, within the tolerance.
-    landing_m = 2 * tolerance_m
+    # piece), an added line the farther the farther that pass's run (_PASS_HEADING_DEG); an
+    # added difference with a depth of its own, not a line, within the tolerance.
+    landing_m, per_run_m = 2 * tolerance_m, 0.0
     if diff.kind == "added":
         line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
         if refit_stage.spread_across_m(diff.cells, resolution=grid.resolution) >= line_m:
             landing_m = tolerance_m
+        else:
+            per_run_m = math.sin(math.radians(_PASS_HEADING_DEG))
 
-    def fits(xy: np.ndarray) -> np.ndarray:
-        on_wall = near_wall(xy, landing_m)
+    def fits(xy: np.ndarray, run_m: float) -> np.ndarray:
         if diff.kind == "added":
-            return on_wall
+            return near_wall(xy, landing_m + per_run_m * run_m)
+        on_wall = near_wall(xy, landing_m)
         return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)
 
     open_there = None

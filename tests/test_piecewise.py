@@ -905,8 +905,8 @@ def _fold_pieces(
     return local, piecewise.Pieces((first, other), 100.0)
 
 
-def _wall_at_y(y: float) -> Callable[[np.ndarray], np.ndarray]:
-    return lambda xy: np.abs(xy[:, 1] - y) <= 0.15
+def _wall_at_y(y: float) -> Callable[[np.ndarray, float], np.ndarray]:
+    return lambda xy, _run_m: np.abs(xy[:, 1] - y) <= 0.15
 
 
 def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None:
@@ -935,6 +935,21 @@ def test_an_obstacle_another_pass_saw_on_a_wall_is_a_fold_not_a_change() -> None
     first, other = weak.pieces
     unchanged = piecewise.Pieces((first, dataclasses.replace(other, aligned=True)), 100.0)
     assert piecewise.another_pass_explains(local, unchanged, xy, _wall_at_y(6.0))
+
+
+def test_a_pass_s_fit_is_asked_with_how_near_its_run_came() -> None:
+    """``fits`` is given the landed points and how near that pass's run came to them: the
+    cells' centre (8, 5), the other run from x = 25 m along y = 5: 17 m."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+    asked: list[float] = []
+
+    def fits(points: np.ndarray, run_m: float) -> np.ndarray:
+        asked.append(run_m)
+        return np.abs(points[:, 1] - 6.0) <= 0.15 + 0.02 * run_m
+
+    far = _fold_pieces(other_run_x=(25.0, 40.0))
+    assert piecewise.another_pass_explains(*far, xy, fits, reach_m=20.0)
+    assert asked == [pytest.approx(17.0)]
 
 
 def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() -> None:
@@ -1016,7 +1031,7 @@ def test_a_structure_both_passes_saw_open_is_a_removal_not_a_fold() -> None:
     xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
     local, pieces = _fold_pieces()
 
-    def on_floor(nav2_xy: np.ndarray) -> np.ndarray:
+    def on_floor(nav2_xy: np.ndarray, _run_m: float) -> np.ndarray:
         return np.abs(nav2_xy[:, 1] - 5.0) > 0.3
 
     def open_but_the_wall_at_y4(slam_xy: np.ndarray) -> np.ndarray:

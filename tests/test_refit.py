@@ -643,6 +643,23 @@ def test_a_pass_lays_a_line_on_a_wall_looser_than_an_obstacle_with_a_depth() -> 
     assert _refit_in_pieces("added", (10.0, 20.0), added_rows=(47, 51), wall_rows=(38, 40)) == []
 
 
+def test_a_line_a_far_pass_drew_lands_off_the_wall_by_its_range_times_a_degree() -> None:
+    """A line (y 4.9..5.0) that the other pass's transform lays 0.4 m south of a wall (at
+    y 6.4..6.5 m, row 35). That pass's run 2 m from it: 0.3 m and 2 m times sin(1 degree)
+    allowed, not a fold. Its run 17 m away (a lidar that saw 20 m, the robot's own run 5 m
+    off): what it drew there is off by its heading error over 17 m, 0.3 m more, and the line
+    is that pass's wall. A wall 0.8 m off is beyond that too; a block 0.4 m deep lands within
+    the tolerance or not at all, however far the pass."""
+    far = {"seen_north_m": 20.0, "own_run_x": (0.0, 3.0)}
+    line, block = (50, 51), (47, 51)
+    assert len(_refit_in_pieces("added", (10.0, 20.0), added_rows=line, wall_rows=(35, 36))) == 1
+    assert _refit_in_pieces("added", (25.0, 40.0), added_rows=line, wall_rows=(35, 36), **far) == []
+    beyond = _refit_in_pieces("added", (25.0, 40.0), added_rows=line, wall_rows=(32, 33), **far)
+    assert len(beyond) == 1
+    deep = _refit_in_pieces("added", (25.0, 40.0), added_rows=block, wall_rows=(34, 35), **far)
+    assert len(deep) == 1
+
+
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
     """The other pass's transform lays the removed cells on open floor, as a fold's, but where
     that pass would have drawn the block had it seen it standing (1 m south in the slam frame),
