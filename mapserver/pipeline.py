@@ -734,7 +734,8 @@ _FOLD_LINE_CELLS = 0.6
 # transform (or of the scans that drew the line) moves what its rays drew at range r by r
 # times that angle. So an added line lands within twice the tolerance plus the distance from
 # that pass's run to it times sin(_PASS_HEADING_DEG) (1 degree: 0.21 m more at 12 m, 0.35 m
-# at 20 m). Not for a difference with a depth of its own, which must land within the
+# at 20 m, 0.52 m at 30 m, where a real line 0.8 m from a wall may go with the folds; the
+# 30 m lidar's set, seed 1307, came out the same). Not for a difference with a depth of its own, which must land within the
 # tolerance: a real box near a wall laid onto it by a far pass's transform (every added
 # difference: 21 changes fewer found for 19 false positives fewer over 41 sets with pieces).
 # Session 31 (s20_1505's gen-00: a 20 m lidar's pass drew a hall's wall 1-3 m into the open,
@@ -915,8 +916,8 @@ def _seen_on_another_pass(
     """Whether another pass of a route aligned in ``pieces``, its run within ``reach_m()`` of
     them (the sensor's), saw ``diff``'s cells (at nav2 points ``xy``, (N, 2), on ``view``'s
     grid) as no change: an added one's on a global wall (``near_wall(xy, distance)``: within
-    twice the differences' tolerance for a line, more the farther that pass's run came
-    (``_PASS_HEADING_DEG``), within the tolerance for one that spreads across itself,
+    twice the differences' tolerance for a line, more the farther from them that pass's run
+    came (``_PASS_HEADING_DEG``), within the tolerance for one that spreads across itself,
     ``_FOLD_LINE_SPREAD_M``; that pass, past half the reach, no more than
     ``_PASS_NEAR_RATIO`` times as far from them as the robot's own run), a removed one's on
     the open floor (free, off every wall by twice the tolerance) unless that pass drew the
@@ -926,21 +927,22 @@ def _seen_on_another_pass(
 
     tolerance_m = config.pipeline.diff.tolerance_m
     # A pass's wall lands within twice the differences' tolerance (the drift left in its
-    # piece), an added line the farther the farther that pass's run (_PASS_HEADING_DEG); an
-    # added difference with a depth of its own, not a line, within the tolerance.
-    landing_m, per_run_m = 2 * tolerance_m, 0.0
+    # piece), an added line farther, the farther from it that pass's run came (its heading
+    # error times the range, _PASS_HEADING_DEG); an added difference with a depth of its own,
+    # not a line, within the tolerance.
+    landing_m, heading_slope = 2 * tolerance_m, 0.0
     if diff.kind == "added":
         line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
         if refit_stage.spread_across_m(diff.cells, resolution=grid.resolution) >= line_m:
             landing_m = tolerance_m
         else:
-            per_run_m = math.sin(math.radians(_PASS_HEADING_DEG))
+            heading_slope = math.sin(math.radians(_PASS_HEADING_DEG))
 
-    def fits(xy: np.ndarray, run_m: float) -> np.ndarray:
+    def fits(landed: np.ndarray, run_m: float) -> np.ndarray:
         if diff.kind == "added":
-            return near_wall(xy, landing_m + per_run_m * run_m)
-        on_wall = near_wall(xy, landing_m)
-        return np.asarray((grid.sample(state, xy, UNKNOWN) == FREE) & ~on_wall)
+            return near_wall(landed, landing_m + heading_slope * run_m)
+        on_wall = near_wall(landed, landing_m)
+        return np.asarray((grid.sample(state, landed, UNKNOWN) == FREE) & ~on_wall)
 
     open_there = None
     if diff.kind == "removed":

@@ -520,12 +520,14 @@ def _refit_in_pieces(
     own_run_x: tuple[float, float] = (0.0, 10.0),
     added_rows: tuple[int, int] = (49, 51),
     wall_rows: tuple[int, int] = (39, 41),
+    removed_wall_rows: tuple[int, int] | None = None,
 ) -> list[Difference]:
     """The pipeline's re-fit, in a 20 m x 10 m hall aligned in two pieces, of one difference at
     x 7.5..8.5 m, y 5 m (a block 0.4 m deep in the building there; a wall along y = 6 m
     for the added kind, none for the removed), of the west piece (identity). An added one
     holds rows ``added_rows`` (y 4.9..5.1 by default; row r is y = 10 - (r + 0.5) * 0.1), the
-    wall rows ``wall_rows``. The other piece
+    wall rows ``wall_rows`` (for the removed kind, ``removed_wall_rows``: none by default). The
+    other piece
     (third on the route) puts everything 1 m north; its run lies along y = 5 m over
     ``other_run_x``. ``other_drew``: the local map's state where that pass would have drawn
     the block (1 m south, y 4 m in the slam frame): OCCUPIED, it saw it standing; FREE, it saw
@@ -544,6 +546,8 @@ def _refit_in_pieces(
     if kind == "added":
         glob[48:52, 70:90] = FREE
         glob[slice(*wall_rows), :] = OCCUPIED  # the wall, by default y 5.9..6.1
+    elif removed_wall_rows is not None:
+        glob[slice(*removed_wall_rows), :] = OCCUPIED
     drawn = np.full((100, 200), FREE, np.uint8)
     drawn[58:62, 70:90] = other_drew  # y 3.8..4.2
     if wall_beside:
@@ -644,20 +648,32 @@ def test_a_pass_lays_a_line_on_a_wall_looser_than_an_obstacle_with_a_depth() -> 
 
 
 def test_a_line_a_far_pass_drew_lands_off_the_wall_by_its_range_times_a_degree() -> None:
-    """A line (y 4.9..5.0) that the other pass's transform lays 0.4 m south of a wall (at
-    y 6.4..6.5 m, row 35). That pass's run 2 m from it: 0.3 m and 2 m times sin(1 degree)
-    allowed, not a fold. Its run 17 m away (a lidar that saw 20 m, the robot's own run 5 m
-    off): what it drew there is off by its heading error over 17 m, 0.3 m more, and the line
-    is that pass's wall. A wall 0.8 m off is beyond that too; a block 0.4 m deep lands within
-    the tolerance or not at all, however far the pass."""
+    """A line (y 4.9..5.0, row 50) that the other pass's transform lays 5 cells (0.5 m,
+    centre to centre) south of a wall (y 6.4..6.5 m, row 35). That pass's run 2 m from it:
+    0.3 m and 2 m times sin(1 degree) allowed, 3 cells: not a fold. Its run 17 m away (a lidar
+    that saw 25 m, the robot's own run 5 m off): what it drew there is off by its heading error
+    over 17 m, 0.3 m more (6 cells), and the line is that pass's wall. A wall 8 cells off is
+    beyond that too. A block 0.4 m deep (rows 47-50, landing 2-5 cells from a wall at row 36)
+    lands within the tolerance or not at all, however far the pass: no allowance for its range."""
     far = {"seen_north_m": 20.0, "own_run_x": (0.0, 3.0)}
     line, block = (50, 51), (47, 51)
     assert len(_refit_in_pieces("added", (10.0, 20.0), added_rows=line, wall_rows=(35, 36))) == 1
     assert _refit_in_pieces("added", (25.0, 40.0), added_rows=line, wall_rows=(35, 36), **far) == []
     beyond = _refit_in_pieces("added", (25.0, 40.0), added_rows=line, wall_rows=(32, 33), **far)
     assert len(beyond) == 1
-    deep = _refit_in_pieces("added", (25.0, 40.0), added_rows=block, wall_rows=(34, 35), **far)
+    deep = _refit_in_pieces("added", (25.0, 40.0), added_rows=block, wall_rows=(36, 37), **far)
     assert len(deep) == 1
+
+
+def test_a_removal_a_far_pass_lays_on_open_floor_gets_no_allowance_for_its_range() -> None:
+    """A removed difference's floor must land off every wall by twice the tolerance, however
+    far the pass: the other pass's run 17 m away lays it (rows 49-50) 4 cells (0.4 m) from a
+    wall at row 35, on open floor, and it is a fold. Its range widens what counts as on a wall
+    for an added line only; here it would put the floor on the wall and keep the removal."""
+    far = {"seen_north_m": 20.0, "own_run_x": (0.0, 3.0)}
+    assert _refit_in_pieces("removed", (25.0, 40.0), removed_wall_rows=(34, 36), **far) == []
+    # The same wall 2 cells off: the floor lands on it, and no pass explains the removal.
+    assert len(_refit_in_pieces("removed", (25.0, 40.0), removed_wall_rows=(36, 38), **far)) == 1
 
 
 def test_a_structure_the_other_pass_drew_open_too_stays_removed() -> None:
