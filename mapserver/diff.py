@@ -733,42 +733,85 @@ def small_structures_gone(
     ``removed``; the inputs are not modified.
     """
     out = np.zeros(removed.shape, bool)
-    small = removed & ~drop_small(removed, min_pixels=smaller_than_px)
+    pieces = box_around(removed, 0)
+    if pieces is None:
+        return out
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(
+        removed[pieces].view(np.uint8), connectivity=8
+    )
     reach = max(1, round(2 * unseen_m / resolution))
     depth_px = unseen_m / resolution
     pad = math.ceil(depth_px) + 1  # the unknown's depth measured exactly up to depth_px
-    box = box_around(small, math.ceil(max_extent_m / resolution) + reach + pad + 1)
-    if box is None:
-        return out
-    g_state, l_state = global_state[box], local_state[box]
+    # A structure through a piece that reaches this window's edge is wider than max_extent_m.
+    margin = math.ceil(max_extent_m / resolution) + reach + pad + 1
+    rules = _SmallRules(
+        max_extent_px=max_extent_m / resolution,
+        min_px=min_px,
+        min_share=min_share,
+        clear_px=max(1, round(clear_m / resolution)),
+        reach_px=reach,
+        depth_px=depth_px if unseen_m > 0 else None,
+        pad_px=pad,
+    )
+    # Each small piece in a window of its own: the pieces lie far apart on a large map.
+    for piece in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < smaller_than_px) + 1:
+        x, y, w, h = (int(v) for v in stats[piece, :4])
+        rows, cols = np.nonzero(labels[y : y + h, x : x + w] == piece)
+        rows, cols = rows + pieces[0].start + y, cols + pieces[1].start + x
+        win = box_of_cells(rows, cols, margin, removed.shape)
+        at = (rows - win[0].start, cols - win[1].start)
+        out[win] |= _small_gone_in(global_state[win], local_state[win], removed[win], at, rules)
+    return out
+
+
+@dataclass(frozen=True)
+class _SmallRules:
+    """:func:`small_structures_gone`'s thresholds in cells of its grid (``depth_px`` None:
+    no rule on the unknown)."""
+
+    max_extent_px: float
+    min_px: float
+    min_share: float
+    clear_px: int
+    reach_px: int
+    depth_px: float | None
+    pad_px: int
+
+
+def _small_gone_in(
+    g_state: NDArray[np.uint8],
+    l_state: NDArray[np.uint8],
+    cand: BoolArray,
+    piece: tuple[NDArray[np.intp], NDArray[np.intp]],
+    rules: _SmallRules,
+) -> BoolArray:
+    """The cells of ``cand`` on small structures seen gone whole through ``piece`` (the rows
+    and columns of a small piece of it), in one window (the arrays' shape)."""
     occupied = (g_state == OCCUPIED).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied, connectivity=8)
-    widest = max_extent_m / resolution
     size = stats[:, cv2.CC_STAT_AREA]
-    cand = removed[box]
     keep = (
-        (stats[:, cv2.CC_STAT_WIDTH] <= widest)
-        & (stats[:, cv2.CC_STAT_HEIGHT] <= widest)
-        & (size >= min_px)
-        & (np.bincount(labels[cand], minlength=n) >= min_share * size)
-        & (np.bincount(labels[small[box]], minlength=n) > 0)
+        (stats[:, cv2.CC_STAT_WIDTH] <= rules.max_extent_px)
+        & (stats[:, cv2.CC_STAT_HEIGHT] <= rules.max_extent_px)
+        & (size >= rules.min_px)
+        & (np.bincount(labels[cand], minlength=n) >= rules.min_share * size)
+        & (np.bincount(labels[piece], minlength=n) > 0)
     )
     keep[0] = False  # the background
-    k = max(1, round(clear_m / resolution))
-    clear = np.ones((2 * k + 1,) * 2, np.uint8)
-    around = np.ones((2 * reach + 1,) * 2, np.uint8)
+    clear = np.ones((2 * rules.clear_px + 1,) * 2, np.uint8)
+    around = np.ones((2 * rules.reach_px + 1,) * 2, np.uint8)
     for label in np.flatnonzero(keep):
         x, y, w, h = (int(v) for v in stats[label, :4])
-        win = grown((slice(y, y + h), slice(x, x + w)), max(k, reach) + pad, labels.shape)
+        room = max(rules.clear_px, rules.reach_px) + rules.pad_px
+        win = grown((slice(y, y + h), slice(x, x + w)), room, labels.shape)
         own = (labels[win] == label).view(np.uint8)
         if (cv2.dilate(own, clear).view(bool) & (l_state[win] == OCCUPIED)).any():
             keep[label] = False
-        elif unseen_m > 0:
+        elif rules.depth_px is not None:
             unknown = (g_state[win] == UNKNOWN).view(np.uint8)
-            deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= depth_px
+            deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= rules.depth_px
             keep[label] = not (deep & cv2.dilate(own, around).view(bool)).any()
-    out[box] = cand & keep[labels]
-    return out
+    return np.asarray(cand & keep[labels])
 
 
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:

@@ -521,8 +521,8 @@ def another_pass_explains(
     them ``min_gap_m`` or more from where the piece does: when ``share`` of them then fit the
     building (``fits(points, run_m)``, per nav2 point; ``run_m``: how near that pass's run
     came to them, metres, from its nearest pose to their centre in the slam frame, as the
-    error of what it drew grows with the length of its rays),
-    that pass saw them, and they are no change.
+    error of what it drew grows with the length of its rays), that pass saw them, and they
+    are no change.
 
     A piece next on the route shares this one's junction, and two trusted neighbours meet there
     within the chain's agreement; it counts only where its run came nearer to the cells than

@@ -735,9 +735,10 @@ _FOLD_LINE_CELLS = 0.6
 # times that angle. So an added line lands within twice the tolerance plus the distance from
 # that pass's run to it times sin(_PASS_HEADING_DEG) (1 degree: 0.21 m more at 12 m, 0.35 m
 # at 20 m, 0.52 m at 30 m, where a real line 0.8 m from a wall may go with the folds; the
-# 30 m lidar's set, seed 1307, came out the same). Not for a difference with a depth of its own, which must land within the
-# tolerance: a real box near a wall laid onto it by a far pass's transform (every added
-# difference: 21 changes fewer found for 19 false positives fewer over 41 sets with pieces).
+# 30 m lidar's set, seed 1307, came out the same). Not for a difference with a depth of its
+# own, which must land within the tolerance: a real box near a wall laid onto it by a far
+# pass's transform (every added difference: 21 changes fewer found for 19 false positives
+# fewer over 41 sets with pieces).
 # Session 31 (s20_1505's gen-00: a 20 m lidar's pass drew a hall's wall 1-3 m into the open,
 # a slanted line whose far pass laid it 0.2-0.5 m from the wall): over the 41 generated and
 # public sets that have bundles aligned in pieces, 10 false positives fewer for 1 change
