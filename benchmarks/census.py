@@ -15,7 +15,7 @@ gets the stage that lost it:
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
-  ``pipeline._refit`` asks them (``floor``, ``faces``, ``refit``, ``pass``, ``left out``,
+  ``pipeline._refit`` asks them (``floor``, ``faces``, ``band``, ``refit``, ``pass``, ``left out``,
   ``ghost``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
@@ -93,6 +93,11 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
         refit_stage,
         "faces_seen_from_behind",
         lambda faces, kwargs: pipeline._folded(faces, kwargs["resolution"]),
+    ),
+    "band": (
+        refit_stage,
+        "band_in_structure",
+        lambda band, kwargs: pipeline._face_displaced(band, kwargs["resolution"]),
     ),
     "refit": (refit_stage, "explained_by_refit", lambda value, _: bool(value)),
     "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),

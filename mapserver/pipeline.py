@@ -771,6 +771,13 @@ _FOLD_DEPTH_M = 0.4
 _FOLD_BEHIND_SHARE = 0.6
 _FOLD_SHALLOW_BEHIND_SHARE = 0.9
 _FOLD_MIN_WALL_M = 1.0
+# A face seen displaced into the structure it bounds: a removed band along a global face, at
+# least _BAND_LENGTH_RATIO times as long as it is deep, whose inner edge is a local wall over
+# _BAND_WALLED_SHARE of it (refit.band_in_structure): a pass that saw the face from its side,
+# with drift left in it, drew it that far inside. A piece cut out of a structure is about as
+# deep as it is wide; a gap cut through a wall has floor, not a face, at its inner edge.
+_BAND_LENGTH_RATIO = 2.5
+_BAND_WALLED_SHARE = 0.8
 
 
 # The route carries the reported transform when it spreads this far (metres, the largest
@@ -854,6 +861,11 @@ def _refit(
             )
             if _folded(faces, grid.resolution):
                 return True
+            band = refit_stage.band_in_structure(
+                diff.cells, global_walls, local_state, resolution=grid.resolution
+            )
+            if _face_displaced(band, grid.resolution):
+                return True
         if refit_stage.explained_by_refit(
             diff.cells,
             diff.kind,
@@ -890,6 +902,17 @@ def _nav2_points(grid: Grid, cells: np.ndarray) -> np.ndarray:
     """The nav2 points (N, 2) of cells ((N, 2) row, col) on ``grid``: what the re-fit's fold
     checks of an alignment in pieces are given of a difference."""
     return grid.to_world(cells[:, ::-1].astype(float))
+
+
+def _face_displaced(band: refit_stage.Band, resolution: float) -> bool:
+    """Whether a removed difference is a face of the building's structure seen displaced into
+    it: ``_BAND_LENGTH_RATIO`` times longer than deep, its inner edge (at least one cell in two
+    along it) ``_BAND_WALLED_SHARE`` walled by a local face."""
+    return (
+        band.length_m >= _BAND_LENGTH_RATIO * band.depth_m
+        and band.inner >= 0.5 * band.length_m / resolution
+        and band.walled_share >= _BAND_WALLED_SHARE
+    )
 
 
 def _folded(faces: refit_stage.Faces, resolution: float) -> bool:

@@ -342,6 +342,65 @@ def faces_seen_from_behind(
     return Faces(len(wr), int(np.count_nonzero(seen)), depth)
 
 
+@dataclass(frozen=True)
+class Band:
+    """A removed difference seen against the building's structure it lies in: ``depth_m``,
+    how deep inside it its deepest cell lies (distance to the nearest cell off every global
+    wall); ``length_m``, how far its cells reach along their main direction; ``inner``, the
+    cells next to it deeper inside the structure than it (its inner edge), of which
+    ``walled`` are local walls or next to one."""
+
+    depth_m: float
+    length_m: float
+    inner: int
+    walled: int
+
+    @property
+    def walled_share(self) -> float:
+        return self.walled / self.inner if self.inner else 0.0
+
+
+def band_in_structure(
+    cells: NDArray[np.intp],
+    global_walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    reach_m: float = 1.0,
+) -> Band:
+    """How a removed difference's ``cells`` ((N, 2) row, col) lie in ``global_walls`` and what
+    the local map (``local_state``) draws at their inner edge (all (H, W), one grid); depths
+    measured up to ``reach_m`` (deeper reads as ``reach_m`` and more).
+
+    A face seen displaced into a structure (drift left in a pass that saw it from its side)
+    leaves a band of free cells along the face, as deep as the displacement all along it and
+    bounded inside by the local face: long, shallow, walled. A piece cut out of a structure is
+    as deep as it is wide, and a gap cut through a thin wall has no inner edge (the wall's
+    other side is floor).
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    box = box_of_cells(rows, cols, math.ceil(reach_m / resolution) + 2, local_state.shape)
+    r, c = rows - box[0].start, cols - box[1].start
+    structure = global_walls[box].view(np.uint8)
+    depth = cv2.distanceTransform(structure, cv2.DIST_L2, 3)
+    own = np.zeros(structure.shape, np.float32)
+    own[r, c] = depth[r, c]
+    mark = np.zeros(structure.shape, np.uint8)
+    mark[r, c] = 1
+    square = np.ones((3, 3), np.uint8)
+    ring = (cv2.dilate(mark, square) > 0) & (mark == 0) & (structure > 0)
+    inner = ring & (depth > cv2.dilate(own, square))
+    walled = inner & (cv2.dilate((local_state[box] == OCCUPIED).view(np.uint8), square) > 0)
+    points = cells.astype(np.float64)
+    centre, axis = _main_axis(points)
+    return Band(
+        float(depth[r, c].max()) * resolution,
+        (_extent(points, centre, axis) + 1.0) * resolution,
+        int(np.count_nonzero(inner)),
+        int(np.count_nonzero(walled)),
+    )
+
+
 def _around(
     rows: NDArray[np.intp],
     cols: NDArray[np.intp],

@@ -12,8 +12,10 @@ import pytest
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import (
+    Band,
     Faces,
     _best_line_through,
+    band_in_structure,
     explained_by_refit,
     faces_seen_from_behind,
     floor_seen_share,
@@ -343,6 +345,92 @@ def test_a_thin_wall_removed_lies_no_depth_into_the_structure() -> None:
     assert faces.depth_m <= 0.1
     # Nor are its walls seen from behind: the wall goes on along its line behind its ends.
     assert faces.behind_share < 0.1
+
+
+def _face_displaced(*, cut: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The wall of ``_band`` (rows 20-44), the robot below it (rows 45 on seen free), and
+    removed cells at its bottom face, bounded above by a local wall: its bottom face drawn
+    0.3 m inside it over 3 m (rows 39-44 seen free, row 38 a wall; drift left in the pass
+    below), or, with ``cut``, a half disc 0.6 m across cut out of it, its curved new face
+    drawn. The global walls, the local states and the removed cells."""
+    walls, local = _band()
+    gone = np.zeros(walls.shape, bool)
+    if cut:
+        rr, cc = np.mgrid[:80, :80]
+        gone = walls & ((rr - 44) ** 2 + (cc - 40) ** 2 <= 12**2)
+        face = walls & ~gone & ((rr - 44) ** 2 + (cc - 40) ** 2 <= 13**2)
+    else:
+        gone[39:45, 10:70] = True
+        face = np.zeros(walls.shape, bool)
+        face[38, 10:70] = True
+    local[gone], local[face] = FREE, OCCUPIED
+    return walls, local, cells(gone)
+
+
+def test_a_face_drawn_inside_its_structure_leaves_a_long_shallow_walled_band() -> None:
+    from mapserver import pipeline
+
+    walls, local, gone = _face_displaced(cut=False)
+    band = band_in_structure(gone, walls, local, resolution=RES)
+    assert band.depth_m == pytest.approx(0.3, abs=0.03)  # row 39: 6 cells from the floor
+    assert band.length_m == pytest.approx(3.0, abs=0.05)
+    assert band.inner >= 60 and band.walled_share == 1.0
+    assert pipeline._face_displaced(band, RES)
+
+
+def test_a_piece_cut_out_of_a_structure_is_as_deep_as_it_is_wide() -> None:
+    from mapserver import pipeline
+
+    walls, local, gone = _face_displaced(cut=True)
+    band = band_in_structure(gone, walls, local, resolution=RES)
+    assert band.depth_m == pytest.approx(0.6, abs=0.06)
+    assert band.length_m == pytest.approx(1.25, abs=0.1)  # 25 cells along the face
+    assert band.walled_share > 0.9  # its new face drawn all round
+    assert not pipeline._face_displaced(band, RES)
+
+
+def test_a_gap_through_a_thin_wall_has_no_inner_edge() -> None:
+    """The 0.15 m wall of a corridor, 1 m of it gone: floor on both sides, nothing of the
+    structure deeper than the gap beside it (its ends lie as deep as it)."""
+    walls = np.zeros((80, 80), bool)
+    walls[40:43] = True
+    local = np.full((80, 80), FREE, np.uint8)
+    local[40:43, :30], local[40:43, 50:] = OCCUPIED, OCCUPIED
+    band = band_in_structure(_cells(slice(40, 43), slice(30, 50)), walls, local, resolution=RES)
+    assert band.inner == 0 and band.walled_share == 0.0
+
+
+@pytest.mark.parametrize(
+    ("length_m", "depth_m", "inner", "walled", "displaced"),
+    [
+        (1.0, 0.4, 10, 8, True),  # 2.5 times as long as deep, its inner edge walled
+        (1.0, 0.41, 10, 8, False),  # deeper: a piece cut out
+        (1.0, 0.4, 10, 7, False),  # 70 % walled
+        (1.0, 0.4, 9, 9, False),  # an inner edge along under half of it
+    ],
+)
+def test_a_displaced_face_is_long_shallow_and_walled(
+    length_m: float, depth_m: float, inner: int, walled: int, displaced: bool
+) -> None:
+    from mapserver import pipeline
+
+    assert pipeline._face_displaced(Band(depth_m, length_m, inner, walled), 0.05) is displaced
+
+
+def test_the_re_fit_drops_a_displaced_face_and_keeps_a_cut() -> None:
+    from mapserver.cluster import cluster_mask
+    from mapserver.grid import Grid
+
+    for cut, kept in ((False, 0), (True, 1)):
+        walls, local, gone = _face_displaced(cut=cut)
+        glob = np.where(walls, OCCUPIED, FREE).astype(np.uint8)
+        mask = np.zeros(walls.shape, bool)
+        mask[gone[:, 0], gone[:, 1]] = True
+        (found,) = cluster_mask(
+            mask, Grid(0.0, 0.0, RES, 80, 80), "removed", eps_m=0.1, min_samples=1
+        )
+        slam_map = from_states(local, RES, (0.0, 0.0, 0.0))
+        assert len(_refit(found, glob, local, RES, slam_map, None, in_pieces=False)) == kept
 
 
 def test_a_removed_piece_with_no_floor_near_it_has_nothing_to_miss() -> None:
