@@ -245,6 +245,11 @@ def observing(trace: Trace) -> Iterator[Trace]:
 def _shown(value: Any) -> str:
     if isinstance(value, refit_stage.Faces):
         return f"depth {value.depth_m:.2f} m, walls {value.walls}, behind {value.behind_share:.2f}"
+    if isinstance(value, refit_stage.Band):
+        return (
+            f"depth {value.depth_m:.2f} m, length {value.length_m:.2f} m, inner {value.inner}, "
+            f"walled {value.walled_share:.2f}"
+        )
     if isinstance(value, float | np.floating):
         return f"{float(value):.2f}"
     return str(bool(value))

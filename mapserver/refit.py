@@ -16,7 +16,9 @@ whatever small move the surrounding walls allow; a removed wall stays free.
 whose floor around it the robot never saw; :func:`faces_seen_from_behind` a third: free cells
 inside a structure, bounded by local walls that were seen free on their far side too (two
 faces of one solid wall drawn on one line; the pipeline asks most of them deep inside a solid,
-nearly all of them at any depth).
+nearly all of them at any depth); :func:`band_in_structure` measures a fourth: a shallow band
+of free cells along a structure's face, walled inside by the local face (the face seen
+displaced into the structure).
 """
 
 from __future__ import annotations
@@ -332,14 +334,19 @@ def faces_seen_from_behind(
             bc = np.rint(wc + k * dc / norm).astype(np.intp)
             on = (br >= 0) & (br < h) & (bc >= 0) & (bc < w)  # off the map: nothing seen
             seen[on] |= local[br[on], bc[on]] == FREE
-    # Within the box's margin the distance is exact; beyond it (no cell off the walls in the
-    # box) it is the margin: deeper than anything asked of it.
-    margin_m = (math.ceil(reach) + steps + 1) * resolution
-    # The 3x3 chamfer the fold's depth floor was measured with; diff.distance_to's 5x5 one
-    # reads straight runs 5 % deeper and, at the same floor, dropped a real removal (seed 7117).
-    solid = cv2.distanceTransform(global_walls[box].view(np.uint8), cv2.DIST_L2, 3)
-    depth = min(float(solid[r, c].max()) * resolution, margin_m)
+    solid = _depth_in(global_walls[box])
+    depth = min(float(solid[r, c].max()), math.ceil(reach) + steps + 1) * resolution
     return Faces(len(wr), int(np.count_nonzero(seen)), depth)
+
+
+def _depth_in(walls: BoolArray) -> NDArray[np.float32]:
+    """(h, w) cells: how deep each cell of ``walls`` (a box of the global walls) lies inside
+    them, its distance to the nearest cell off every wall; 0 off them. Exact within the box's
+    margin; where no cell off the walls lies in the box, huge (OpenCV counts what lies beyond
+    the box as far): the callers cap it at their margin. The 3x3 chamfer the fold's depth floor
+    was measured with; diff.distance_to's 5x5 one reads straight runs 5 % deeper and, at the
+    same floor, dropped a real removal (seed 7117)."""
+    return np.asarray(cv2.distanceTransform(walls.view(np.uint8), cv2.DIST_L2, 3))
 
 
 @dataclass(frozen=True)
@@ -374,27 +381,28 @@ def band_in_structure(
 
     A face seen displaced into a structure (drift left in a pass that saw it from its side)
     leaves a band of free cells along the face, as deep as the displacement all along it and
-    bounded inside by the local face: long, shallow, walled. A piece cut out of a structure is
-    as deep as it is wide, and a gap cut through a thin wall has no inner edge (the wall's
-    other side is floor).
+    bounded inside by the local face: long, shallow, walled. A half disc cut out of a structure
+    is about twice as long as it is deep; a gap cut through a wall of even thickness has no
+    inner edge (the wall's other side is floor; near a corner or a junction, a few cells).
     """
     rows, cols = cells[:, 0], cells[:, 1]
-    box = box_of_cells(rows, cols, math.ceil(reach_m / resolution) + 2, local_state.shape)
+    margin = math.ceil(reach_m / resolution) + 2
+    box = box_of_cells(rows, cols, margin, local_state.shape)
     r, c = rows - box[0].start, cols - box[1].start
-    structure = global_walls[box].view(np.uint8)
-    depth = cv2.distanceTransform(structure, cv2.DIST_L2, 3)
-    own = np.zeros(structure.shape, np.float32)
+    depth = _depth_in(global_walls[box])
+    own = np.zeros(depth.shape, np.float32)
     own[r, c] = depth[r, c]
-    mark = np.zeros(structure.shape, np.uint8)
+    mark = np.zeros(depth.shape, np.uint8)
     mark[r, c] = 1
     square = np.ones((3, 3), np.uint8)
-    ring = (cv2.dilate(mark, square) > 0) & (mark == 0) & (structure > 0)
-    inner = ring & (depth > cv2.dilate(own, square))
+    # The cells next to the difference deeper than any of its cells beside them: neither its
+    # own cells (none is deeper than the deepest around itself) nor floor (depth 0).
+    inner = (cv2.dilate(mark, square) > 0) & (depth > cv2.dilate(own, square))
     walled = inner & (cv2.dilate((local_state[box] == OCCUPIED).view(np.uint8), square) > 0)
     points = cells.astype(np.float64)
     centre, axis = _main_axis(points)
     return Band(
-        float(depth[r, c].max()) * resolution,
+        min(float(depth[r, c].max()), margin) * resolution,
         (_extent(points, centre, axis) + 1.0) * resolution,
         int(np.count_nonzero(inner)),
         int(np.count_nonzero(walled)),

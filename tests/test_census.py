@@ -180,7 +180,7 @@ def test_the_verdicts_recorded_drop_exactly_what_the_refit_drops(
     checks: set[str],
 ) -> None:
     # A 70 m session drifting 0.1 degrees per metre one way: aligned in pieces and re-fitted,
-    # the re-fit's checks deciding (between the two seeds, each check at least once).
+    # the re-fit's checks deciding (each seed's named ones at least once).
     office = synth.make_office_map(width_m=30, height_m=20, rng=11)
     scenario = synth.make_scenario(
         office,
@@ -248,12 +248,17 @@ def test_the_observers_record_each_checks_verdict_and_are_undone_whatever_happen
         faces = refit_stage.faces_seen_from_behind(
             cells, global_state == OCCUPIED, local_state, resolution=0.05
         )
+        band = refit_stage.band_in_structure(
+            cells, global_state == OCCUPIED, local_state, resolution=0.05
+        )
         raise RuntimeError("stop")
     assert share == 0.0 and faces.walls == 0
     verdicts = trace.verdicts[census._key(cells)]
     assert [(v.check, v.explained, v.shown) for v in verdicts] == [
         ("floor", True, "0.00"),
         ("faces", False, f"depth {faces.depth_m:.2f} m, walls 0, behind {faces.behind_share:.2f}"),
+        # No local wall at its inner edge: not a face seen displaced.
+        ("band", False, f"depth 0.10 m, length 0.10 m, inner {band.inner}, walled 0.00"),
     ]
     assert all(getattr(m, n) is f for (m, n), f in originals.items())
 
