@@ -392,12 +392,10 @@ def band_in_structure(
     depth = _depth_in(global_walls[box])
     own = np.zeros(depth.shape, np.float32)
     own[r, c] = depth[r, c]
-    mark = np.zeros(depth.shape, np.uint8)
-    mark[r, c] = 1
     square = np.ones((3, 3), np.uint8)
     # The cells next to the difference deeper than any of its cells beside them: neither its
     # own cells (none is deeper than the deepest around itself) nor floor (depth 0).
-    inner = (cv2.dilate(mark, square) > 0) & (depth > cv2.dilate(own, square))
+    inner = _around(rows, cols, box, square) & (depth > cv2.dilate(own, square))
     walled = inner & (cv2.dilate((local_state[box] == OCCUPIED).view(np.uint8), square) > 0)
     points = cells.astype(np.float64)
     centre, axis = _main_axis(points)
