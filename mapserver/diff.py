@@ -441,6 +441,7 @@ def removal_evidence(
     route: RouteDistance | None = None,
     depth_per_m: float = 0.0,
     ray_m: float = 0.0,
+    across_per_m: float = 0.0,
 ) -> BoolArray:
     """Removed cells that show a structure is really gone, not a face eroded by grazing rays.
 
@@ -480,6 +481,15 @@ def removal_evidence(
     from its route the robot saw anything): rays grazing the face from that far draw free cells
     that deep behind it, and a wall that is gone opens the view well beyond. Where the global
     map knew the space free, the robot saw it again through where the structure stood.
+
+    Seen through, with ``across_per_m`` > 0 and a ``route`` that knows its nearest points: a
+    ray drawn from r metres away may lie ``across_per_m`` times r to one side of where it
+    went (the angle error of its scan), so a ray that passed beside a structure may be drawn
+    across it. The cell must lie that far inside the structure across the direction to the
+    route's nearest point (the shortest rays that saw it; r its distance from the route), in
+    whole cells with one of slack (:func:`_across_m`). A thin wall the robot looked along
+    from far off, its rays drawn on both sides of it and through it, is 0.1 m thick across
+    them; one the robot looked across is as long as the wall across them.
 
     Either way, a cell counts only when the robot could have seen it: connected to open space
     through cells seen free, not across a wall seen standing (a solid block whose faces are
@@ -523,11 +533,18 @@ def removal_evidence(
     seen_free = local_state[box] == FREE
     # The face cells it can reach lie within `reach` of an anchor: its work in that window.
     near = box_around(anchors, reach)
+    # Seen through only deep enough inside the structure across the rays that saw it.
+    through = cand
+    toward = route.toward(box) if route is not None and across_per_m > 0 else None
+    if route is not None and toward is not None:
+        through = cand & _inside_across_rays(
+            g_occ, toward, across_per_m * route.of_box(box), resolution
+        )
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # Open space within `reach` before, and after, the cell.
         seen_before = _seen_in_line(far_space, far_unseen, (dr, dc), reach, longer)
         seen_after = _seen_in_line(far_space, far_unseen, (-dr, -dc), reach, longer)
-        found |= cand & seen_before & seen_after
+        found |= through & seen_before & seen_after
         # A face cell with open space on one side and, in line on the other, a cell seen
         # free deep inside with only cells seen free between (no wall seen standing): on the
         # path of the rays that saw that cell.
@@ -590,6 +607,53 @@ def removal_evidence(
 # 99's 152 changes (F1 0.960 -> 0.953); half (0.5) kept 1 and 2 of these false removals more
 # than 0.75.
 _SKIM_SHARE = 0.75
+
+
+# The four line directions (row, col) a structure's thickness is measured along, at 0, 45, 90
+# and 135 degrees from the grid's rows (angles measured from the +col axis towards +row).
+_LINES = ((0, 1), (1, 1), (1, 0), (1, -1))
+
+
+def _inside_across_rays(
+    solid: BoolArray,
+    toward: NDArray[np.float32],
+    need_m: NDArray[np.float32],
+    resolution: float,
+) -> BoolArray:
+    """Whether each cell lies at least ``need_m`` (per cell) inside ``solid`` across the
+    direction ``toward`` ((H, W, 2) unit (row, col) vectors: the rays that saw it), measured
+    along the nearest of the four grid lines (:data:`_LINES`) by :func:`_across_m`."""
+    angle = np.degrees(np.arctan2(-toward[..., 1], toward[..., 0])) % 180.0  # across them
+    line = np.round(angle / 45.0).astype(np.intp) % 4
+    inside = np.zeros(solid.shape, bool)
+    for i, step in enumerate(_LINES):
+        on_line = line == i
+        if on_line.any():
+            inside |= on_line & (_across_m(solid, step, resolution, need_m) >= need_m)
+    return inside
+
+
+def _across_m(
+    solid: BoolArray, step: tuple[int, int], resolution: float, need_m: NDArray[np.float32]
+) -> NDArray[np.float32]:
+    """How far each cell of ``solid`` lies inside it along the line ``step`` ((dr, dc)) both
+    ways, metres: whole steps to its last cell on the nearer side, plus half a step (to that
+    cell's edge) and one step of slack (each map draws a face anywhere in the cell it falls
+    in), counted up to the largest of ``need_m``. Cells off ``solid`` get 1.5 steps too; the
+    caller asks of cells on it."""
+    step_m = resolution * math.hypot(*step)
+    kernel = np.zeros((3, 3), np.uint8)
+    kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
+    steps = np.zeros(solid.shape, np.float32)
+    left: NDArray[np.uint8] = solid.astype(np.uint8)
+    for _ in range(math.ceil(float(need_m.max(initial=0.0)) / step_m)):
+        left = np.asarray(
+            cv2.erode(left, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0), np.uint8
+        )
+        if not left.any():
+            break
+        steps += left
+    return (steps + np.float32(1.5)) * np.float32(step_m)
 
 
 def _seen_in_line(

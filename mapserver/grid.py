@@ -249,16 +249,35 @@ def densify(polyline: NDArray[np.float64], step: float) -> NDArray[np.float64]:
 @dataclass(frozen=True)
 class RouteDistance:
     """How far the cells of a grid lie from the robot's route, metres, on blocks of ``block``
-    cells: a lower bound on the length of every ray that saw a cell."""
+    cells: a lower bound on the length of every ray that saw a cell. ``nearest`` (blocks'
+    shape + (2,), optional): the (row, col) of the route's block nearest to each block, which
+    gives the direction of the shortest rays that saw a cell (:meth:`toward`)."""
 
     blocks: NDArray[np.float32]
     block: int
+    nearest: NDArray[np.float32] | None = None
 
     def of_box(self, box: tuple[slice, slice]) -> NDArray[np.float32]:
         """The distance of every cell of ``box`` ((rows, cols) slices of the grid)."""
         rows = np.arange(box[0].start, box[0].stop) // self.block
         cols = np.arange(box[1].start, box[1].stop) // self.block
         return np.asarray(self.blocks[np.ix_(rows, cols)])
+
+    def toward(self, box: tuple[slice, slice]) -> NDArray[np.float32] | None:
+        """(h, w, 2) float32 on ``box``: the unit (row, col) vector from every cell of it to
+        the centre of the route's nearest block; None without ``nearest``. A cell on the
+        route's block points nowhere in particular: (1, 0)."""
+        if self.nearest is None:
+            return None
+        rows = np.arange(box[0].start, box[0].stop)
+        cols = np.arange(box[1].start, box[1].stop)
+        near = self.nearest[np.ix_(rows // self.block, cols // self.block)]
+        dr = (near[..., 0] + 0.5) * self.block - 0.5 - rows[:, None]
+        dc = (near[..., 1] + 0.5) * self.block - 0.5 - cols[None, :]
+        length = np.hypot(dr, dc)
+        here = length == 0
+        dr[here], length[here] = 1.0, 1.0
+        return np.stack([dr / length, dc / length], axis=-1).astype(np.float32)
 
     def farthest(self, mask: NDArray[np.bool_]) -> float:
         """The largest distance of a True cell of ``mask`` (the grid's shape), metres, on its
@@ -297,7 +316,15 @@ def route_distance(
     block_m = f * resolution
     dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
     dist = np.maximum(dist - block_m / math.sqrt(2), 0)
-    return RouteDistance(np.asarray(dist, np.float32), f)
+    # The route's block nearest to each block (the label of the zero pixel each one's
+    # distance was measured to; a 5x5 mask, as labels need, not the precise distance above).
+    _, labels = cv2.distanceTransformWithLabels(
+        off_route, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    on_rows, on_cols = np.nonzero(off_route == 0)
+    at = np.zeros((int(labels.max()) + 1, 2), np.float32)
+    at[labels[on_rows, on_cols]] = np.stack([on_rows, on_cols], axis=1)
+    return RouteDistance(np.asarray(dist, np.float32), f, at[labels])
 
 
 def any_in_blocks(mask: NDArray[np.bool_], f: int) -> NDArray[np.bool_]:

@@ -22,6 +22,7 @@ from mapserver.config import DiffConfig
 from mapserver.deform import warp_local
 from mapserver.diff import (
     DiffMasks,
+    _across_m,
     _deep_inside,
     drop_along_walls,
     drop_small,
@@ -818,6 +819,59 @@ def test_open_space_behind_a_face_that_the_global_map_never_saw_counts_only_past
     known = g.copy()
     known[41:, :] = FREE  # a thin wall between two spaces the global map knew
     assert removal_evidence(known, loc, line, ray_m=30.0, **kw)[40, 10:90].all()
+
+
+def test_a_thin_wall_seen_through_along_its_length_from_afar_is_not_evidence() -> None:
+    """A wall 3 cells thick (0.15 m) down column 50, the local map free on both sides of it and
+    through it. Seen from a route 25 m down its line (rays along it), 0.3 degrees of the
+    scan's angle error draws rays 0.13 m to the side, across a wall 0.075 m thick each way:
+    not evidence. The same wall seen across, from 25 m to the side, is 60 cells thick across
+    the rays: evidence; and seen along from 2 m, 0.01 m asked: evidence."""
+    from mapserver.grid import RouteDistance
+
+    g = np.full((80, 100), FREE, np.uint8)
+    g[:, 49:52] = OCCUPIED
+    loc = np.full(g.shape, FREE, np.uint8)
+    cells = g == OCCUPIED
+    kw = {**_SEEN_BOTH_SIDES, "both_sides_m": 0.0, "across_per_m": math.radians(0.3)}
+    blocks = (16, 20)  # blocks of 5 cells
+
+    def route_at(block_row: float, block_col: float, metres: float) -> RouteDistance:
+        nearest = np.broadcast_to(np.float32([block_row, block_col]), (*blocks, 2)).copy()
+        return RouteDistance(np.full(blocks, metres, np.float32), 5, nearest)
+
+    along = route_at(500.0, 10.0, 25.0)  # far below, down the wall's line
+    across = route_at(8.0, -500.0, 25.0)  # far to the left, level with the rows
+    near_along = route_at(500.0, 10.0, 2.0)
+    assert not removal_evidence(g, loc, cells, route=along, **kw)[10:70].any()
+    assert removal_evidence(g, loc, cells, route=across, **kw)[10:70, 49:52].all()
+    assert removal_evidence(g, loc, cells, route=near_along, **kw)[10:70, 49:52].all()
+    # Without the angle error, or without the route's nearest points, as before.
+    assert removal_evidence(g, loc, cells, route=along, **{**kw, "across_per_m": 0.0})[
+        10:70, 49:52
+    ].all()
+    assert removal_evidence(g, loc, cells, route=RouteDistance(along.blocks, 5), **kw)[
+        10:70, 49:52
+    ].all()
+
+
+def test_how_far_inside_a_structure_a_cell_lies_along_a_line() -> None:
+    """A block 7 cells wide and 3 tall: along the rows its middle cell lies 3 whole cells
+    from its last one each way, across them 1; each plus half a cell to the edge and one of
+    slack, counted no further than asked."""
+    solid = np.zeros((20, 20), bool)
+    solid[5:8, 5:12] = True
+    need = np.full(solid.shape, 1.0, np.float32)
+    along = _across_m(solid, (0, 1), 0.05, need)
+    assert along[6, 8] == pytest.approx((3 + 1.5) * 0.05)
+    assert along[6, 5] == pytest.approx(1.5 * 0.05)
+    assert _across_m(solid, (1, 0), 0.05, need)[6, 8] == pytest.approx((1 + 1.5) * 0.05)
+    diagonal = _across_m(solid, (1, 1), 0.05, need)[6, 8]
+    assert diagonal == pytest.approx((1 + 1.5) * 0.05 * math.sqrt(2))
+    # Asked no more than 0.09 m: counted up to two steps.
+    assert _across_m(solid, (0, 1), 0.05, np.full(solid.shape, 0.09, np.float32))[6, 8] == (
+        pytest.approx((2 + 1.5) * 0.05)
+    )
 
 
 def test_how_deep_inside_is_measured_past_the_edge_of_the_window() -> None:

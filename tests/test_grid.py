@@ -33,6 +33,22 @@ def test_blocks_that_hold_a_cell_of_a_mask() -> None:
     assert not any_in_blocks(np.zeros((7, 8), bool), 3).any()
 
 
+def test_the_direction_from_a_cell_to_the_route() -> None:
+    """A route down column 5 of a 60 x 60 grid at 0.05 m, rows 0-30 (0.25 m blocks of 5
+    cells): a cell level with it points straight at it, a cell below its end points up at
+    that end, as a ray from the route's nearest point would come; without the nearest
+    blocks, no direction."""
+    route = route_distance(np.array([[5.0, 0.0], [5.0, 30.0]]), (60, 60), 0.05)
+    assert route is not None and route.nearest is not None
+    level = route.toward((slice(12, 13), slice(50, 51)))
+    assert level is not None and level.shape == (1, 1, 2)
+    assert level[0, 0, 1] < -0.99  # towards lower columns, along the row
+    below = route.toward((slice(58, 59), slice(5, 6)))
+    assert below is not None and below[0, 0, 0] < -0.99  # straight up
+    assert np.allclose(np.hypot(*route.toward((slice(0, 60), slice(0, 60))).transpose(2, 0, 1)), 1)
+    assert RouteDistance(route.blocks, route.block).toward((slice(0, 1), slice(0, 1))) is None
+
+
 def test_how_far_from_the_route_a_map_saw_anything() -> None:
     """A route along row 0 of a 40 x 40 grid at 0.1 m (0.2 m blocks of 2 cells): cells seen at
     row 30 lie 3.0 m from it; the reach is their distance on their block, never more and at
