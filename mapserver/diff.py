@@ -487,9 +487,10 @@ def removal_evidence(
     went (the angle error of its scan), so a ray that passed beside a structure may be drawn
     across it. The cell must lie that far inside the structure across the direction to the
     route's nearest point (the shortest rays that saw it; r its distance from the route), in
-    whole cells with one of slack (:func:`_across_m`). A thin wall the robot looked along
-    from far off, its rays drawn on both sides of it and through it, is 0.1 m thick across
-    them; one the robot looked across is as long as the wall across them.
+    counted to the edge of its outermost cell plus one cell of slack (:func:`_across_m`). A
+    thin wall the robot looked along from far off, its rays drawn on both sides of it and
+    through it, is only its own thickness across them; one the robot looked across is as
+    long as the wall across them.
 
     Either way, a cell counts only when the robot could have seen it: connected to open space
     through cells seen free, not across a wall seen standing (a solid block whose faces are
@@ -535,11 +536,14 @@ def removal_evidence(
     near = box_around(anchors, reach)
     # Seen through only deep enough inside the structure across the rays that saw it.
     through = cand
-    toward = route.toward(box) if route is not None and across_per_m > 0 else None
-    if route is not None and toward is not None:
-        through = cand & _inside_across_rays(
-            g_occ, toward, across_per_m * route.of_box(box), resolution
-        )
+    if route is not None and route.nearest is not None and across_per_m > 0:
+        rows, cols = np.nonzero(cand)
+        at = (rows + box[0].start, cols + box[1].start)
+        toward = route.toward(*at)
+        assert toward is not None
+        need_m = np.float32(across_per_m) * route.of_box(box)[rows, cols]
+        through = np.zeros_like(cand)
+        through[rows, cols] = _inside_across_rays(g_occ, rows, cols, toward, need_m, resolution)
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # Open space within `reach` before, and after, the cell.
         seen_before = _seen_in_line(far_space, far_unseen, (dr, dc), reach, longer)
@@ -616,37 +620,41 @@ _LINES = ((0, 1), (1, 1), (1, 0), (1, -1))
 
 def _inside_across_rays(
     solid: BoolArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
     toward: NDArray[np.float32],
     need_m: NDArray[np.float32],
     resolution: float,
 ) -> BoolArray:
-    """Whether each cell lies at least ``need_m`` (per cell) inside ``solid`` across the
-    direction ``toward`` ((H, W, 2) unit (row, col) vectors: the rays that saw it), measured
-    along the nearest of the four grid lines (:data:`_LINES`) by :func:`_across_m`."""
-    angle = np.degrees(np.arctan2(-toward[..., 1], toward[..., 0])) % 180.0  # across them
+    """(N,) bool: whether each cell (``rows``, ``cols``: (N,) of ``solid``) lies at least
+    ``need_m`` ((N,)) inside ``solid`` across the direction ``toward`` ((N, 2) unit (row, col)
+    vectors: the rays that saw it), measured along the nearest of the four grid lines
+    (:data:`_LINES`) by :func:`_across_m`."""
+    angle = np.degrees(np.arctan2(-toward[:, 1], toward[:, 0])) % 180.0  # across them
     line = np.round(angle / 45.0).astype(np.intp) % 4
-    inside = np.zeros(solid.shape, bool)
+    inside = np.zeros(len(rows), bool)
     for i, step in enumerate(_LINES):
         on_line = line == i
         if on_line.any():
-            inside |= on_line & (_across_m(solid, step, resolution, need_m) >= need_m)
+            r, c, need = rows[on_line], cols[on_line], need_m[on_line]
+            inside[on_line] = _across_m(solid, step, resolution, float(need.max()))[r, c] >= need
     return inside
 
 
 def _across_m(
-    solid: BoolArray, step: tuple[int, int], resolution: float, need_m: NDArray[np.float32]
+    solid: BoolArray, step: tuple[int, int], resolution: float, up_to_m: float
 ) -> NDArray[np.float32]:
     """How far each cell of ``solid`` lies inside it along the line ``step`` ((dr, dc)) both
     ways, metres: whole steps to its last cell on the nearer side, plus half a step (to that
     cell's edge) and one step of slack (each map draws a face anywhere in the cell it falls
-    in), counted up to the largest of ``need_m``. Cells off ``solid`` get 1.5 steps too; the
+    in), counted until it passes ``up_to_m``. Cells off ``solid`` get 1.5 steps too; the
     caller asks of cells on it."""
     step_m = resolution * math.hypot(*step)
     kernel = np.zeros((3, 3), np.uint8)
     kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
     steps = np.zeros(solid.shape, np.float32)
     left: NDArray[np.uint8] = solid.astype(np.uint8)
-    for _ in range(math.ceil(float(need_m.max(initial=0.0)) / step_m)):
+    for _ in range(math.ceil(up_to_m / step_m)):
         left = np.asarray(
             cv2.erode(left, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0), np.uint8
         )

@@ -263,17 +263,16 @@ class RouteDistance:
         cols = np.arange(box[1].start, box[1].stop) // self.block
         return np.asarray(self.blocks[np.ix_(rows, cols)])
 
-    def toward(self, box: tuple[slice, slice]) -> NDArray[np.float32] | None:
-        """(h, w, 2) float32 on ``box``: the unit (row, col) vector from every cell of it to
-        the centre of the route's nearest block; None without ``nearest``. A cell on the
-        route's block points nowhere in particular: (1, 0)."""
+    def toward(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32] | None:
+        """(N, 2) float32: the unit (row, col) vector from each cell (``rows``, ``cols``: (N,)
+        of the grid) to the centre of the route's nearest block; None without ``nearest``. A
+        cell at that centre points nowhere in particular: (1, 0)."""
         if self.nearest is None:
             return None
-        rows = np.arange(box[0].start, box[0].stop)
-        cols = np.arange(box[1].start, box[1].stop)
-        near = self.nearest[np.ix_(rows // self.block, cols // self.block)]
-        dr = (near[..., 0] + 0.5) * self.block - 0.5 - rows[:, None]
-        dc = (near[..., 1] + 0.5) * self.block - 0.5 - cols[None, :]
+        near = self.nearest[rows // self.block, cols // self.block]
+        half = np.float32(0.5 * self.block - 0.5)
+        dr = near[:, 0] * np.float32(self.block) + half - rows.astype(np.float32)
+        dc = near[:, 1] * np.float32(self.block) + half - cols.astype(np.float32)
         length = np.hypot(dr, dc)
         here = length == 0
         dr[here], length[here] = 1.0, 1.0

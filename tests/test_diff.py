@@ -823,10 +823,12 @@ def test_open_space_behind_a_face_that_the_global_map_never_saw_counts_only_past
 
 def test_a_thin_wall_seen_through_along_its_length_from_afar_is_not_evidence() -> None:
     """A wall 3 cells thick (0.15 m) down column 50, the local map free on both sides of it and
-    through it. Seen from a route 25 m down its line (rays along it), 0.3 degrees of the
-    scan's angle error draws rays 0.13 m to the side, across a wall 0.075 m thick each way:
-    not evidence. The same wall seen across, from 25 m to the side, is 60 cells thick across
-    the rays: evidence; and seen along from 2 m, 0.01 m asked: evidence."""
+    through it. Seen from a route 40 m down its line (rays along it), 0.3 degrees of the
+    scan's angle error draws rays 0.21 m to the side, across a wall whose middle cell is
+    0.125 m inside it with the slack: not evidence. The same wall seen across, from 40 m to
+    the side, is 80 cells long across the rays: evidence; and seen along from 2 m, 0.01 m
+    asked: evidence. A diagonal wall seen along its length is not evidence either, seen
+    across it is."""
     from mapserver.grid import RouteDistance
 
     g = np.full((80, 100), FREE, np.uint8)
@@ -840,12 +842,32 @@ def test_a_thin_wall_seen_through_along_its_length_from_afar_is_not_evidence() -
         nearest = np.broadcast_to(np.float32([block_row, block_col]), (*blocks, 2)).copy()
         return RouteDistance(np.full(blocks, metres, np.float32), 5, nearest)
 
-    along = route_at(500.0, 10.0, 25.0)  # far below, down the wall's line
-    across = route_at(8.0, -500.0, 25.0)  # far to the left, level with the rows
+    along = route_at(500.0, 10.0, 40.0)  # far below, down the wall's line: 0.21 m asked
+    across = route_at(8.0, -500.0, 40.0)  # far to the left, level with the rows
     near_along = route_at(500.0, 10.0, 2.0)
     assert not removal_evidence(g, loc, cells, route=along, **kw)[10:70].any()
     assert removal_evidence(g, loc, cells, route=across, **kw)[10:70, 49:52].all()
     assert removal_evidence(g, loc, cells, route=near_along, **kw)[10:70, 49:52].all()
+    # A wall down the diagonal (3 cells across each row), seen along it from the top left
+    # and across it from the top right.
+    diagonal = np.full((80, 80), FREE, np.uint8)
+    for r in range(80):
+        diagonal[r, max(r - 1, 0) : r + 2] = OCCUPIED
+    on_it = diagonal == OCCUPIED
+    free = np.full(diagonal.shape, FREE, np.uint8)
+    blocks16 = (16, 16)
+    from_top_left = RouteDistance(
+        np.full(blocks16, 40.0, np.float32), 5, np.full((*blocks16, 2), -400.0, np.float32)
+    )
+    from_top_right = RouteDistance(
+        np.full(blocks16, 40.0, np.float32),
+        5,
+        np.broadcast_to(np.float32([-400.0, 400.0]), (*blocks16, 2)).copy(),
+    )
+    assert not removal_evidence(diagonal, free, on_it, route=from_top_left, **kw)[20:60].any()
+    assert removal_evidence(diagonal, free, on_it, route=from_top_right, **kw)[30:50][
+        on_it[30:50]
+    ].all()
     # Without the angle error, or without the route's nearest points, as before.
     assert removal_evidence(g, loc, cells, route=along, **{**kw, "across_per_m": 0.0})[
         10:70, 49:52
@@ -861,7 +883,7 @@ def test_how_far_inside_a_structure_a_cell_lies_along_a_line() -> None:
     slack, counted no further than asked."""
     solid = np.zeros((20, 20), bool)
     solid[5:8, 5:12] = True
-    need = np.full(solid.shape, 1.0, np.float32)
+    need = 1.0
     along = _across_m(solid, (0, 1), 0.05, need)
     assert along[6, 8] == pytest.approx((3 + 1.5) * 0.05)
     assert along[6, 5] == pytest.approx(1.5 * 0.05)
@@ -869,9 +891,7 @@ def test_how_far_inside_a_structure_a_cell_lies_along_a_line() -> None:
     diagonal = _across_m(solid, (1, 1), 0.05, need)[6, 8]
     assert diagonal == pytest.approx((1 + 1.5) * 0.05 * math.sqrt(2))
     # Asked no more than 0.09 m: counted up to two steps.
-    assert _across_m(solid, (0, 1), 0.05, np.full(solid.shape, 0.09, np.float32))[6, 8] == (
-        pytest.approx((2 + 1.5) * 0.05)
-    )
+    assert _across_m(solid, (0, 1), 0.05, 0.09)[6, 8] == (pytest.approx((2 + 1.5) * 0.05))
 
 
 def test_how_deep_inside_is_measured_past_the_edge_of_the_window() -> None:

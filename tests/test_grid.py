@@ -34,19 +34,22 @@ def test_blocks_that_hold_a_cell_of_a_mask() -> None:
 
 
 def test_the_direction_from_a_cell_to_the_route() -> None:
-    """A route down column 5 of a 60 x 60 grid at 0.05 m, rows 0-30 (0.25 m blocks of 5
-    cells): a cell level with it points straight at it, a cell below its end points up at
-    that end, as a ray from the route's nearest point would come; without the nearest
+    """A route down column 7 of a 60 x 60 grid at 0.05 m, rows 0-30 (0.25 m blocks of 5
+    cells: the route's blocks are centred on column 7): a cell level with a block's centre
+    points straight at it along the row, a cell below the route's end up at its last block,
+    a cell down and to the right of it up and to the left at 45 degrees; without the nearest
     blocks, no direction."""
-    route = route_distance(np.array([[5.0, 0.0], [5.0, 30.0]]), (60, 60), 0.05)
+    route = route_distance(np.array([[7.0, 0.0], [7.0, 30.0]]), (60, 60), 0.05)
     assert route is not None and route.nearest is not None
-    level = route.toward((slice(12, 13), slice(50, 51)))
-    assert level is not None and level.shape == (1, 1, 2)
-    assert level[0, 0, 1] < -0.99  # towards lower columns, along the row
-    below = route.toward((slice(58, 59), slice(5, 6)))
-    assert below is not None and below[0, 0, 0] < -0.99  # straight up
-    assert np.allclose(np.hypot(*route.toward((slice(0, 60), slice(0, 60))).transpose(2, 0, 1)), 1)
-    assert RouteDistance(route.blocks, route.block).toward((slice(0, 1), slice(0, 1))) is None
+    cells = np.array([12, 58, 52]), np.array([50, 7, 27])
+    toward = route.toward(*cells)
+    assert toward is not None and toward.shape == (3, 2)
+    assert np.allclose(toward[0], [0.0, -1.0])  # row 12 is block 2's centre row
+    assert np.allclose(toward[1], [-1.0, 0.0])  # the last block (rows 30-34) straight up
+    assert np.allclose(toward[2], [-math.sqrt(0.5), -math.sqrt(0.5)])  # to (32, 7)
+    rows, cols = np.nonzero(np.ones((60, 60), bool))
+    assert np.allclose(np.hypot(*route.toward(rows, cols).T), 1.0)
+    assert RouteDistance(route.blocks, route.block).toward(*cells) is None
 
 
 def test_how_far_from_the_route_a_map_saw_anything() -> None:
