@@ -541,7 +541,7 @@ def removal_evidence(
         at = (rows + box[0].start, cols + box[1].start)
         toward = route.toward(*at)
         assert toward is not None
-        need_m = np.float32(across_per_m) * route.of_box(box)[rows, cols]
+        need_m = np.float32(across_per_m) * route.at(*at)
         through = np.zeros_like(cand)
         through[rows, cols] = _inside_across_rays(g_occ, rows, cols, toward, need_m, resolution)
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
@@ -637,22 +637,27 @@ def _inside_across_rays(
         on_line = line == i
         if on_line.any():
             r, c, need = rows[on_line], cols[on_line], need_m[on_line]
-            inside[on_line] = _across_m(solid, step, resolution, float(need.max()))[r, c] >= need
+            inside[on_line] = _across_m(solid, step, resolution, float(need.max()), r, c) >= need
     return inside
 
 
 def _across_m(
-    solid: BoolArray, step: tuple[int, int], resolution: float, up_to_m: float
+    solid: BoolArray,
+    step: tuple[int, int],
+    resolution: float,
+    up_to_m: float,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
 ) -> NDArray[np.float32]:
-    """How far each cell of ``solid`` lies inside it along the line ``step`` ((dr, dc)) both
-    ways, metres: whole steps to its last cell on the nearer side, plus half a step (to that
+    """How far each cell (``rows``, ``cols``: (N,)) of ``solid`` lies inside it along the line
+    ``step`` ((dr, dc)) both ways, metres ((N,)): whole steps to its last cell on the nearer side, plus half a step (to that
     cell's edge) and one step of slack (each map draws a face anywhere in the cell it falls
     in), counted until it passes ``up_to_m``. Cells off ``solid`` get 1.5 steps too; the
     caller asks of cells on it."""
     step_m = resolution * math.hypot(*step)
     kernel = np.zeros((3, 3), np.uint8)
     kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
-    steps = np.zeros(solid.shape, np.float32)
+    steps = np.zeros(len(rows), np.float32)
     left: NDArray[np.uint8] = solid.astype(np.uint8)
     for _ in range(math.ceil(up_to_m / step_m)):
         left = np.asarray(
@@ -660,7 +665,7 @@ def _across_m(
         )
         if not left.any():
             break
-        steps += left
+        steps += left[rows, cols]
     return (steps + np.float32(1.5)) * np.float32(step_m)
 
 

@@ -263,6 +263,10 @@ class RouteDistance:
         cols = np.arange(box[1].start, box[1].stop) // self.block
         return np.asarray(self.blocks[np.ix_(rows, cols)])
 
+    def at(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32]:
+        """(N,) float32: the distance of each cell (``rows``, ``cols``: (N,) of the grid)."""
+        return np.asarray(self.blocks[rows // self.block, cols // self.block])
+
     def toward(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32] | None:
         """(N, 2) float32: the unit (row, col) vector from each cell (``rows``, ``cols``: (N,)
         of the grid) to the centre of the route's nearest block; None without ``nearest``. A

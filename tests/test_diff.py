@@ -881,17 +881,21 @@ def test_how_far_inside_a_structure_a_cell_lies_along_a_line() -> None:
     """A block 7 cells wide and 3 tall: along the rows its middle cell lies 3 whole cells
     from its last one each way, across them 1; each plus half a cell to the edge and one of
     slack, counted no further than asked."""
+
+    def _at(row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([row]), np.array([col])
+
     solid = np.zeros((20, 20), bool)
     solid[5:8, 5:12] = True
     need = 1.0
-    along = _across_m(solid, (0, 1), 0.05, need)
-    assert along[6, 8] == pytest.approx((3 + 1.5) * 0.05)
-    assert along[6, 5] == pytest.approx(1.5 * 0.05)
-    assert _across_m(solid, (1, 0), 0.05, need)[6, 8] == pytest.approx((1 + 1.5) * 0.05)
-    diagonal = _across_m(solid, (1, 1), 0.05, need)[6, 8]
+    along = _across_m(solid, (0, 1), 0.05, need, np.array([6, 6]), np.array([8, 5]))
+    assert along[0] == pytest.approx((3 + 1.5) * 0.05)
+    assert along[1] == pytest.approx(1.5 * 0.05)
+    assert _across_m(solid, (1, 0), 0.05, need, *_at(6, 8))[0] == pytest.approx((1 + 1.5) * 0.05)
+    diagonal = _across_m(solid, (1, 1), 0.05, need, *_at(6, 8))[0]
     assert diagonal == pytest.approx((1 + 1.5) * 0.05 * math.sqrt(2))
     # Asked no more than 0.09 m: counted up to two steps.
-    assert _across_m(solid, (0, 1), 0.05, 0.09)[6, 8] == (pytest.approx((2 + 1.5) * 0.05))
+    assert _across_m(solid, (0, 1), 0.05, 0.09, *_at(6, 8))[0] == (pytest.approx((2 + 1.5) * 0.05))
 
 
 def test_how_deep_inside_is_measured_past_the_edge_of_the_window() -> None:
