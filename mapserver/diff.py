@@ -537,13 +537,18 @@ def removal_evidence(
     # Seen through only deep enough inside the structure across the rays that saw it.
     through = cand
     if route is not None and route.nearest is not None and across_per_m > 0:
-        rows, cols = np.nonzero(cand)
-        at = (rows + box[0].start, cols + box[1].start)
-        toward = route.toward(*at)
-        assert toward is not None
-        need_m = np.float32(across_per_m) * route.at(*at)
-        through = np.zeros_like(cand)
-        through[rows, cols] = _inside_across_rays(g_occ, rows, cols, toward, need_m, resolution)
+        # Asked only where it asks more than any cell has: 1.5 steps along a grid line
+        # (:func:`_across_m`), beyond 14 m from the route for 0.05 m cells.
+        far_m = 1.5 * resolution / across_per_m
+        rows, cols = np.nonzero(cand & route.beyond(box, far_m))
+        if len(rows):
+            at = (rows + box[0].start, cols + box[1].start)
+            toward = route.toward(*at)
+            assert toward is not None
+            need_m = np.float32(across_per_m) * route.at(*at)
+            inside = _inside_across_rays(g_occ, rows, cols, toward, need_m, resolution)
+            through = cand.copy()
+            through[rows[~inside], cols[~inside]] = False
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         # Open space within `reach` before, and after, the cell.
         seen_before = _seen_in_line(far_space, far_unseen, (dr, dc), reach, longer)
@@ -658,8 +663,15 @@ def _across_m(
     kernel = np.zeros((3, 3), np.uint8)
     kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
     steps = np.zeros(len(rows), np.float32)
-    left: NDArray[np.uint8] = solid.astype(np.uint8)
-    for _ in range(math.ceil(up_to_m / step_m)):
+    if len(rows) == 0:
+        return steps
+    # Eroded around the cells only: k erosions reach k steps from a cell.
+    k = math.ceil(up_to_m / step_m)
+    r0, c0 = max(int(rows.min()) - k - 1, 0), max(int(cols.min()) - k - 1, 0)
+    rows, cols = rows - r0, cols - c0
+    around = solid[r0 : r0 + int(rows.max()) + k + 2, c0 : c0 + int(cols.max()) + k + 2]
+    left: NDArray[np.uint8] = around.astype(np.uint8)
+    for _ in range(k):
         left = np.asarray(
             cv2.erode(left, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0), np.uint8
         )

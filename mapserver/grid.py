@@ -263,6 +263,13 @@ class RouteDistance:
         cols = np.arange(box[1].start, box[1].stop) // self.block
         return np.asarray(self.blocks[np.ix_(rows, cols)])
 
+    def beyond(self, box: tuple[slice, slice], metres: float) -> NDArray[np.bool_]:
+        """Whether every cell of ``box`` lies farther than ``metres`` from the route (decided
+        on the blocks, one byte a cell)."""
+        rows = np.arange(box[0].start, box[0].stop) // self.block
+        cols = np.arange(box[1].start, box[1].stop) // self.block
+        return np.asarray((self.blocks > metres)[np.ix_(rows, cols)])
+
     def at(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32]:
         """(N,) float32: the distance of each cell (``rows``, ``cols``: (N,) of the grid)."""
         return np.asarray(self.blocks[rows // self.block, cols // self.block])
