@@ -486,7 +486,7 @@ def removal_evidence(
     ray drawn from r metres away may lie ``across_per_m`` times r to one side of where it
     went (the angle error of its scan), so a ray that passed beside a structure may be drawn
     across it. The cell must lie that far inside the structure across the direction to the
-    route's nearest point (the shortest rays that saw it; r its distance from the route), in
+    route's nearest point (the shortest rays that saw it; r its distance from the route),
     counted to the edge of its outermost cell plus one cell of slack (:func:`_across_m`). A
     thin wall the robot looked along from far off, its rays drawn on both sides of it and
     through it, is only its own thickness across them; one the robot looked across is as
@@ -537,9 +537,9 @@ def removal_evidence(
     # Seen through only deep enough inside the structure across the rays that saw it.
     through = cand
     if route is not None and route.nearest is not None and across_per_m > 0:
-        # Asked only where it asks more than any cell has: 1.5 steps along a grid line
-        # (:func:`_across_m`), beyond 14 m from the route for 0.05 m cells.
-        far_m = 1.5 * resolution / across_per_m
+        # Asked only where it asks more than any cell has (_ACROSS_SLACK_STEPS along a grid
+        # line): beyond 14 m from the route for 0.05 m cells.
+        far_m = _ACROSS_SLACK_STEPS * resolution / across_per_m
         rows, cols = np.nonzero(cand & route.beyond(box, far_m))
         if len(rows):
             at = (rows + box[0].start, cols + box[1].start)
@@ -618,6 +618,10 @@ def removal_evidence(
 _SKIM_SHARE = 0.75
 
 
+# What _across_m adds to the whole steps it counts inside a structure: half a step to the
+# edge of the cell's outermost cell, and one step of slack (each map draws a face anywhere in
+# the cell it falls in).
+_ACROSS_SLACK_STEPS = 1.5
 # The four line directions (row, col) a structure's thickness is measured along, at 0, 45, 90
 # and 135 degrees from the grid's rows (angles measured from the +col axis towards +row).
 _LINES = ((0, 1), (1, 1), (1, 0), (1, -1))
@@ -655,16 +659,15 @@ def _across_m(
     cols: NDArray[np.intp],
 ) -> NDArray[np.float32]:
     """How far each cell (``rows``, ``cols``: (N,)) of ``solid`` lies inside it along the line
-    ``step`` ((dr, dc)) both ways, metres ((N,)): whole steps to its last cell on the nearer side, plus half a step (to that
-    cell's edge) and one step of slack (each map draws a face anywhere in the cell it falls
-    in), counted until it passes ``up_to_m``. Cells off ``solid`` get 1.5 steps too; the
-    caller asks of cells on it."""
+    ``step`` ((dr, dc)) both ways, metres ((N,)): whole steps to its last cell on the nearer
+    side plus :data:`_ACROSS_SLACK_STEPS`, counted until it passes ``up_to_m``. Cells off
+    ``solid`` get the slack too; the caller asks of cells on it."""
     step_m = resolution * math.hypot(*step)
-    kernel = np.zeros((3, 3), np.uint8)
-    kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
     steps = np.zeros(len(rows), np.float32)
     if len(rows) == 0:
         return steps
+    kernel = np.zeros((3, 3), np.uint8)
+    kernel[1, 1] = kernel[1 + step[0], 1 + step[1]] = kernel[1 - step[0], 1 - step[1]] = 1
     # Eroded around the cells only: k erosions reach k steps from a cell.
     k = math.ceil(up_to_m / step_m)
     r0, c0 = max(int(rows.min()) - k - 1, 0), max(int(cols.min()) - k - 1, 0)
@@ -678,7 +681,7 @@ def _across_m(
         if not left.any():
             break
         steps += left[rows, cols]
-    return (steps + np.float32(1.5)) * np.float32(step_m)
+    return (steps + np.float32(_ACROSS_SLACK_STEPS)) * np.float32(step_m)
 
 
 def _seen_in_line(

@@ -259,16 +259,18 @@ class RouteDistance:
 
     def of_box(self, box: tuple[slice, slice]) -> NDArray[np.float32]:
         """The distance of every cell of ``box`` ((rows, cols) slices of the grid)."""
-        rows = np.arange(box[0].start, box[0].stop) // self.block
-        cols = np.arange(box[1].start, box[1].stop) // self.block
-        return np.asarray(self.blocks[np.ix_(rows, cols)])
+        return np.asarray(self.blocks[self._blocks_of(box)])
 
     def beyond(self, box: tuple[slice, slice], metres: float) -> NDArray[np.bool_]:
         """Whether every cell of ``box`` lies farther than ``metres`` from the route (decided
         on the blocks, one byte a cell)."""
+        return np.asarray((self.blocks > metres)[self._blocks_of(box)])
+
+    def _blocks_of(self, box: tuple[slice, slice]) -> tuple[NDArray[Any], ...]:
+        """The open-mesh index of the block of every cell of ``box``."""
         rows = np.arange(box[0].start, box[0].stop) // self.block
         cols = np.arange(box[1].start, box[1].stop) // self.block
-        return np.asarray((self.blocks > metres)[np.ix_(rows, cols)])
+        return np.ix_(rows, cols)
 
     def at(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32]:
         """(N,) float32: the distance of each cell (``rows``, ``cols``: (N,) of the grid)."""
@@ -305,12 +307,14 @@ def route_distance(
     resolution: float,
     *,
     block_m: float = 0.25,
+    nearest: bool = False,
 ) -> RouteDistance | None:
     """:class:`RouteDistance` on a grid of ``shape`` from the route ``route_px`` ((M, 2) pixel
     ``(col, row)`` points, joined by straight lines), on blocks of about ``block_m``; None for
     an empty route. A lower bound: a stretch of the route off the grid is taken at the grid's
     edge (nearer to every cell than it is), and the blocks' centres less half a block's
-    diagonal."""
+    diagonal. With ``nearest``, each block's nearest route block too (the directions of
+    :meth:`RouteDistance.toward`; asked by the removal evidence, not by a reach)."""
     route = np.asarray(route_px, np.float64).reshape(-1, 2)
     if len(route) == 0:
         return None
@@ -326,6 +330,8 @@ def route_distance(
     block_m = f * resolution
     dist = cv2.distanceTransform(off_route, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * block_m
     dist = np.maximum(dist - block_m / math.sqrt(2), 0)
+    if not nearest:
+        return RouteDistance(np.asarray(dist, np.float32), f)
     # The route's block nearest to each block (the label of the zero pixel each one's
     # distance was measured to; a 5x5 mask, as labels need, not the precise distance above).
     _, labels = cv2.distanceTransformWithLabels(

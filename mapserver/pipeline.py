@@ -526,7 +526,7 @@ def _route_on(grid: Grid, route_xy: np.ndarray | None) -> RouteDistance | None:
     without one): what the removal evidence of both comparisons measures from."""
     if route_xy is None:
         return None
-    return route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution)
+    return route_distance(grid.to_pixel(route_xy), grid.shape, grid.resolution, nearest=True)
 
 
 # The removal evidence's depth grows by this much per metre between a cell and the route

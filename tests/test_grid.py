@@ -39,7 +39,7 @@ def test_the_direction_from_a_cell_to_the_route() -> None:
     points straight at it along the row, a cell below the route's end up at its last block,
     a cell down and to the right of it up and to the left at 45 degrees; without the nearest
     blocks, no direction."""
-    route = route_distance(np.array([[7.0, 0.0], [7.0, 30.0]]), (60, 60), 0.05)
+    route = route_distance(np.array([[7.0, 0.0], [7.0, 30.0]]), (60, 60), 0.05, nearest=True)
     assert route is not None and route.nearest is not None
     cells = np.array([12, 58, 52]), np.array([50, 7, 27])
     toward = route.toward(*cells)
