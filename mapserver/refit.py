@@ -70,7 +70,12 @@ def explained_by_refit(
     masks) is explained by a rigid move of at most ``shift_m`` and ``turn_deg`` that fits the
     local walls within ``margin_m`` of it to the global walls: at least 80 % of an added one's
     cells then within ``tolerance_m`` of a global wall, of a removed one's within
-    ``removed_tolerance_m`` of a moved local wall."""
+    ``removed_tolerance_m`` of a moved local wall.
+
+    For an added difference the walls are fitted to the global structures' faces (their cells
+    next to any that are not), not to every cell of them: a lidar sees faces only, and a block
+    drawn solid (a counter, a pillar) would let its face slide into it at no cost, carrying a
+    new wall beside it onto the block."""
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, margin_m + shift_m, resolution, global_walls.shape)
     r0, c0 = box[0].start, box[1].start
@@ -91,7 +96,12 @@ def explained_by_refit(
         return False
     cap_px = 0.5 / resolution
     dist = distance_to(g)
-    field = np.minimum(dist, cap_px)
+    # Session 34, over 68 generated and public sets: one false positive fewer, no change lost.
+    # For removed differences too: 5 changes fewer found, 3 false positives more (not kept).
+    fit_on = g
+    if kind == "added":
+        fit_on = g & ~(cv2.erode(g.view(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    field = np.minimum(distance_to(fit_on), cap_px)
     centre_r, centre_c = float(rr.mean()), float(cc.mean())
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = np.meshgrid(steps, steps, indexing="ij")

@@ -94,6 +94,29 @@ def test_a_gap_in_a_straight_wall_is_not_explained_by_sliding_the_wall_over_it()
     assert explained_by_refit(cells(off_gap), "removed", glob, off | np.roll(gap, 7, axis=0), **KW)
 
 
+def test_a_new_wall_beside_a_solid_block_is_not_explained_by_moving_its_face_into_it() -> None:
+    """A block drawn solid (rows 30-79), seen from below: its face and the lower ends of its
+    sides. A new wall 0.3 m below the face: a move of the local walls 0.3 m up would cost
+    nothing on the block's every cell and lay the new wall on it; on the faces it moves the
+    face off its own. The whole block seen 0.3 m low is still a fold the re-fit explains."""
+    glob = np.zeros((160, 200), bool)
+    glob[30:80, 40:160] = True
+
+    def seen_from_below(down_px: int) -> np.ndarray:
+        seen = np.zeros(glob.shape, bool)
+        seen[79 + down_px, 40:160] = True
+        seen[60 + down_px : 80 + down_px, 40] = seen[60 + down_px : 80 + down_px, 159] = True
+        return seen
+
+    new = np.zeros(glob.shape, bool)
+    new[85:88, 50:150] = True
+    assert not explained_by_refit(cells(new), "added", glob, seen_from_below(0) | new, **KW)
+    low = seen_from_below(6)
+    face_seen_low = low & ~glob
+    face_seen_low[:, [40, 159]] = False
+    assert explained_by_refit(cells(face_seen_low), "added", glob, low, **KW)
+
+
 def _corridor() -> tuple[np.ndarray, np.ndarray]:
     """A straight wall 1 px thick across an 8 m x 4 m grid at 0.05 m (row 40), seen in place by
     the local map."""
