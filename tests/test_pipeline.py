@@ -401,9 +401,11 @@ def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> 
 def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_rays() -> None:
     """A wall 3 cells thick (0.15 m) down column 50 over 39 m, seen free on both sides and
     through it from a route just past its end, down its line: the rays that saw it came along
-    it. Its cells within 10 m of the route are evidence that it is gone; those beyond 25 m,
-    where 0.3 degrees of angle error draws a ray more than its half-thickness (0.125 m with
-    the slack) to the side, are not. Without a route, all are."""
+    it. Its cells within 13 m of the route are evidence that it is gone; none beyond 25 m,
+    where 0.3 degrees of angle error draws a ray more than the middle cell's depth across them
+    (half a step to its edge, one whole step, and 1.5 steps of slack: 0.125 m) to the side;
+    the outer cells (0.075 m with the slack) stop counting at 14 m. Without a route, all
+    are."""
     g = np.full((800, 100), FREE, np.uint8)
     g[:780, 49:52] = OCCUPIED
     loc = np.full(g.shape, FREE, np.uint8)
@@ -412,7 +414,7 @@ def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_ray
     global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
     route_xy = grid.to_world(np.array([[50.0, row] for row in range(785, 800)]))
 
-    def evidence(route_xy: np.ndarray | None) -> np.ndarray:
+    def evidence(xy: np.ndarray | None) -> np.ndarray:
         return pipeline._diff_masks(
             g,
             g == OCCUPIED,
@@ -422,12 +424,12 @@ def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_ray
             Config(),
             local,
             global_map,
-            route=lambda: pipeline._route_on(grid, route_xy),
+            route=lambda: pipeline._route_on(grid, xy),
             reach_m=lambda: 12.0,
         )[1]
 
     along = evidence(route_xy)
-    assert along[580:770, 49:52].all()
+    assert along[525:780, 49:52].all()
     assert not along[:280].any()
     assert evidence(None)[:770, 49:52].all()
 
