@@ -73,9 +73,9 @@ def explained_by_refit(
     ``removed_tolerance_m`` of a moved local wall.
 
     For an added difference the walls are fitted to the global structures' faces (their cells
-    with an 8-neighbour that is not, within the window), not to every cell of them: a lidar sees faces only, and a block
-    drawn solid (a counter, a pillar) would let its face slide into it at no cost, carrying a
-    new wall beside it onto the block."""
+    with an 8-neighbour that is not, within the window), not to every cell of them: a lidar
+    sees faces only, and a block drawn solid (a counter, a pillar) would let its face slide
+    into it at no cost, carrying a new wall beside it onto the block."""
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, margin_m + shift_m, resolution, global_walls.shape)
     r0, c0 = box[0].start, box[1].start
