@@ -906,6 +906,121 @@ def _small_gone_in(
     return np.asarray(cand & keep[labels])
 
 
+@dataclass(frozen=True)
+class CutRules:
+    """What :func:`walls_cut_through` asks of a gap, in metres: each part of the wall either
+    side of it at least ``min_part_m`` of cells; of its cells within ``near_gap_m`` of the gap,
+    ``standing_share`` with a local wall within ``seen_m`` (the robot saw it standing); floor in
+    both maps within ``side_m`` of the gap on both sides of the wall, beside ``side_share`` of
+    its cells; no cell of the global map unknown ``unseen_m`` deep within twice that."""
+
+    min_part_m: float = 0.3
+    near_gap_m: float = 0.5
+    seen_m: float = 0.05
+    standing_share: float = 0.65
+    side_m: float = 0.25
+    side_share: float = 0.5
+    unseen_m: float = 0.25
+
+
+def walls_cut_through(
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    removed: BoolArray,
+    *,
+    resolution: float,
+    smaller_than_px: int,
+    rules: CutRules,
+) -> BoolArray:
+    """The cells of ``removed``'s small pieces (under ``smaller_than_px`` cells, 8-connected)
+    that cut a thin wall of the global map in two, a wall the robot saw standing on both sides
+    of the piece, with floor on both sides of it in both maps (``rules``).
+
+    A gap made in a partition: after a drifting session the end tolerance trims each end of
+    the gap by 0.2 m, and what stays of a gap 0.6 m wide is a few cells across the wall's
+    whole thickness, under the removed floor. A bite out of a thicker wall's face, a fold
+    along it and the end of a wall cut nothing; a face of a structure whose inside the map
+    never saw is no partition; rays through a thin wall that the local map drew nowhere near
+    standing do not see it standing. (H, W) bool, True only on cells of ``removed``; the inputs
+    are not modified. The evidence the removal needs is the caller's to ask.
+    """
+    out = np.zeros(removed.shape, bool)
+    pieces = box_around(removed, 0)
+    if pieces is None:
+        return out
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(
+        removed[pieces].view(np.uint8), connectivity=8
+    )
+    margin = math.ceil(2 * rules.near_gap_m / resolution)
+    for piece in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < smaller_than_px) + 1:
+        x, y, w, h = (int(v) for v in stats[piece, :4])
+        rows, cols = np.nonzero(labels[y : y + h, x : x + w] == piece)
+        rows, cols = rows + pieces[0].start + y, cols + pieces[1].start + x
+        win = box_of_cells(rows, cols, margin, removed.shape)
+        at = (rows - win[0].start, cols - win[1].start)
+        if _cuts_in(global_state[win], local_state[win], at, resolution, rules):
+            out[win][at] = True
+    return out
+
+
+def _cuts_in(
+    g_state: NDArray[np.uint8],
+    l_state: NDArray[np.uint8],
+    at: tuple[NDArray[np.intp], NDArray[np.intp]],
+    resolution: float,
+    rules: CutRules,
+) -> bool:
+    """Whether the piece at cells ``at`` cuts a wall in two in this window
+    (:func:`walls_cut_through`)."""
+    piece = np.zeros(g_state.shape, np.uint8)
+    piece[at] = 1
+    reach = max(1, round(2 * rules.unseen_m / resolution))
+    unknown = (g_state == UNKNOWN).view(np.uint8)
+    deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= rules.unseen_m / resolution
+    if (deep & _grown_by(piece, reach)).any():
+        return False  # a face of a structure whose inside the map never saw
+    _, walls = cv2.connectedComponents((g_state == OCCUPIED).view(np.uint8), connectivity=8)
+    on = walls[at]
+    on = on[on > 0]
+    if len(on) == 0:
+        return False
+    rest = (walls == np.bincount(on).argmax()).view(np.uint8)
+    rest[at] = 0
+    _, parts, stats, centroids = cv2.connectedComponentsWithStats(rest, connectivity=8)
+    seen = _grown_by((l_state == OCCUPIED).view(np.uint8), max(1, round(rules.seen_m / resolution)))
+    near_gap = _grown_by(piece, round(rules.near_gap_m / resolution))
+    standing = []
+    for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= rules.min_part_m / resolution) + 1:
+        part = (parts == k) & near_gap
+        n = np.count_nonzero(part)
+        if n and np.count_nonzero(part & seen) >= rules.standing_share * n:
+            standing.append(k)
+    if len(standing) < 2:
+        return False
+    # Across the line through the two parts (centroids are (x, y)): floor on both sides.
+    along = centroids[standing[1]][::-1] - centroids[standing[0]][::-1]
+    across = np.array([-along[1], along[0]]) / max(float(np.hypot(*along)), 1e-9)
+    floor = (g_state == FREE) & (l_state == FREE)
+    steps = range(1, max(1, round(rules.side_m / resolution)) + 1)
+    for sign in (1, -1):
+        beside = np.zeros(len(at[0]), bool)
+        for step in steps:
+            r = np.rint(at[0] + sign * step * across[0]).astype(np.intp)
+            c = np.rint(at[1] + sign * step * across[1]).astype(np.intp)
+            inside = (r >= 0) & (r < floor.shape[0]) & (c >= 0) & (c < floor.shape[1])
+            beside[inside] |= floor[r[inside], c[inside]]
+        if beside.mean() < rules.side_share:
+            return False
+    return True
+
+
+def _grown_by(mask: NDArray[np.uint8], px: int) -> BoolArray:
+    """``mask`` (uint8) grown by ``px`` cells each way (a square), as bool."""
+    if px <= 0:
+        return mask.view(bool).copy()
+    return np.asarray(cv2.dilate(mask, np.ones((2 * px + 1,) * 2, np.uint8))).view(bool)
+
+
 def drop_small(mask: BoolArray, *, min_pixels: int) -> BoolArray:
     """``mask`` without its 8-connected components smaller than ``min_pixels``."""
     out = mask.copy()

@@ -21,6 +21,7 @@ from mapserver.cluster import (
 from mapserver.config import DiffConfig
 from mapserver.deform import warp_local
 from mapserver.diff import (
+    CutRules,
     DiffMasks,
     _across_m,
     _deep_inside,
@@ -31,6 +32,7 @@ from mapserver.diff import (
     raw_differences,
     removal_evidence,
     small_structures_gone,
+    walls_cut_through,
 )
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
@@ -1044,3 +1046,74 @@ def test_a_small_cluster_is_kept_when_most_of_it_is_a_structure_seen_gone_whole(
     whole[40:45, 40] = True
     none = np.zeros(grid.shape, bool)
     assert cluster_mask(mask, grid, "removed", whole=whole, evidence=none, **kw) == []
+
+
+def _partition() -> tuple[np.ndarray, np.ndarray]:
+    """A room 5 m x 5 m at 0.05 m split by a partition 0.1 m thick (rows 50-51) from wall to
+    wall, floor on both sides in both maps; in the local map a gap 0.6 m wide cut through it
+    (columns 44-55)."""
+    g = np.full((100, 100), FREE, np.uint8)
+    g[50:52, :] = OCCUPIED
+    loc = g.copy()
+    loc[50:52, 44:56] = FREE
+    return g, loc
+
+
+def _cut(g: np.ndarray, loc: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    return walls_cut_through(g, loc, removed, resolution=RES, smaller_than_px=8, rules=CutRules())
+
+
+def _trimmed(shape: tuple[int, int], cols: slice) -> np.ndarray:
+    """What the end tolerance leaves of the gap: the cells across the partition in ``cols``."""
+    removed = np.zeros(shape, bool)
+    removed[50:52, cols] = True
+    return removed
+
+
+def test_what_stays_of_a_gap_cut_through_a_partition_is_marked() -> None:
+    """The gap's middle 4 cells (0.1 m x 0.1 m), the partition seen standing on both sides."""
+    g, loc = _partition()
+    g0, loc0 = g.copy(), loc.copy()
+    removed = _trimmed(g.shape, slice(49, 51))
+    out = _cut(g, loc, removed)
+    assert out.sum() == 4 and (out == removed).all()
+    assert (g == g0).all() and (loc == loc0).all() and removed.sum() == 4
+    # Not a small piece: the usual floor judges it.
+    assert not _cut(g, loc, _trimmed(g.shape, slice(48, 52))).any()
+
+
+def test_a_piece_that_cuts_no_partition_in_two_is_not_marked() -> None:
+    """Not: a bite out of the face of a wall 0.3 m thick (what is left holds together); the
+    last cells of a wall's end (one part only); the partition seen standing on one side of the
+    piece only; a partition the local map drew as scattered specks (rays through it)."""
+    g, loc = _partition()
+    g[50:56, :] = OCCUPIED  # 0.3 m thick
+    loc[50:56, :] = OCCUPIED
+    loc[50:52, 44:56] = FREE
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+    g, loc = _partition()
+    g[50:52, 60:] = FREE  # the partition ends at column 59
+    loc[50:52, 56:] = FREE
+    assert not _cut(g, loc, _trimmed(g.shape, slice(58, 60))).any()
+    g, loc = _partition()
+    loc[50:52, 56:] = FREE  # seen gone east of the gap too
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+    g, loc = _partition()
+    loc[50:52, :] = FREE
+    loc[50, ::8] = OCCUPIED  # a speck every 0.4 m
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+
+
+def test_a_piece_of_a_face_with_no_floor_behind_it_is_not_marked() -> None:
+    """Not: the partition is a face of a structure whose inside the global map never saw
+    (unknown behind it, or 0.1 m behind it); nor one the robot saw from one side only (the
+    local map unknown on the other)."""
+    g, loc = _partition()
+    g[52:, :] = UNKNOWN
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+    g, loc = _partition()
+    g[54:, :] = UNKNOWN  # a strip of floor 0.1 m deep, then never seen
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+    g, loc = _partition()
+    loc[52:, :] = UNKNOWN
+    assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()

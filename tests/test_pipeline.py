@@ -337,6 +337,29 @@ def test_a_small_structure_is_counted_in_the_global_maps_cells(
     assert [d.kind for d in found] == kinds
 
 
+def test_what_stays_of_a_gap_cut_through_a_partition_is_reported() -> None:
+    """A partition 0.1 m thick between two rooms, seen standing either side of a gap cut
+    through it: the 4 cells the end tolerance leaves of the gap (0.01 m2, under the removed
+    floor of 8 cells) are reported, with their evidence; the same 4 cells where the partition
+    was seen gone all along are not."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    g = np.full((100, 100), FREE, np.uint8)
+    g[50:52, :] = OCCUPIED
+    seen = g.copy()
+    seen[50:52, 44:56] = FREE
+    piece = np.zeros((100, 100), bool)
+    piece[50:52, 49:51] = True
+    masks = diff_stage.DiffMasks(added=np.zeros_like(piece), removed=piece)
+    config = Config()
+    assert config.pipeline.diff.min_removed_cells > 4
+    for drawn, kinds in ((seen, ["removed"]), (np.where(g == OCCUPIED, FREE, g), [])):
+        local = from_states(drawn.astype(np.uint8), 0.05, (0.0, 0.0, 0.0))
+        found = pipeline._cluster_masks(
+            masks, piece, grid, config, local, (g, local.state), 0.05, drifted=True
+        )
+        assert [d.kind for d in found] == kinds
+
+
 def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported() -> None:
     """The drifted floor is 0.03 m2, 12 cells at 0.05 m (a box's face seen from one side):
     12 cells are reported, 11 are not (whatever the rounding of 12 x 0.05 x 0.05)."""
