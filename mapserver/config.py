@@ -116,7 +116,9 @@ class DiffConfig(_Frozen):
     the map draws a wall's end decimetres short where its tile's walls still fit (at 0.1 m the
     526 drifted bundles of those sets gave 11 changes fewer and 16 false positives more)."""
     min_removed_cells: int = Field(8, ge=1)
-    """A removed obstacle must be seen free over at least this many local-map cells."""
+    """A removed obstacle must be seen free over at least this many local-map cells (from
+    ``min_local_cells`` on when it is a small structure seen gone whole, ``small_structure_m``,
+    or cuts a thin wall in two: ``pipeline._CUT_RULES``)."""
     removed_depth_m: float = Field(0.15, ge=0)
     """A removed obstacle must be seen free this deep inside the structure (at least two cells
     of the local map and one of the global map) ..."""

@@ -825,12 +825,6 @@ def small_structures_gone(
     ``removed``; the inputs are not modified.
     """
     out = np.zeros(removed.shape, bool)
-    pieces = box_around(removed, 0)
-    if pieces is None:
-        return out
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(
-        removed[pieces].view(np.uint8), connectivity=8
-    )
     reach = max(1, round(2 * unseen_m / resolution))
     depth_px = unseen_m / resolution
     pad = math.ceil(depth_px) + 1  # the unknown's depth measured exactly up to depth_px
@@ -845,15 +839,29 @@ def small_structures_gone(
         depth_px=depth_px if unseen_m > 0 else None,
         pad_px=pad,
     )
-    # Each small piece in a window of its own: the pieces lie far apart on a large map.
+    for win, at in _small_pieces(removed, smaller_than_px, margin):
+        out[win] |= _small_gone_in(global_state[win], local_state[win], removed[win], at, rules)
+    return out
+
+
+def _small_pieces(
+    removed: BoolArray, smaller_than_px: int, margin_px: int
+) -> Iterator[tuple[tuple[slice, slice], tuple[NDArray[np.intp], NDArray[np.intp]]]]:
+    """``removed``'s pieces (8-connected) under ``smaller_than_px`` cells, each in a window of
+    its own (the pieces lie far apart on a large map): the window, its box around the piece
+    grown by ``margin_px``, and the piece's (rows, cols) in it."""
+    pieces = box_around(removed, 0)
+    if pieces is None:
+        return
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(
+        removed[pieces].view(np.uint8), connectivity=8
+    )
     for piece in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < smaller_than_px) + 1:
         x, y, w, h = (int(v) for v in stats[piece, :4])
         rows, cols = np.nonzero(labels[y : y + h, x : x + w] == piece)
         rows, cols = rows + pieces[0].start + y, cols + pieces[1].start + x
-        win = box_of_cells(rows, cols, margin, removed.shape)
-        at = (rows - win[0].start, cols - win[1].start)
-        out[win] |= _small_gone_in(global_state[win], local_state[win], removed[win], at, rules)
-    return out
+        win = box_of_cells(rows, cols, margin_px, removed.shape)
+        yield win, (rows - win[0].start, cols - win[1].start)
 
 
 @dataclass(frozen=True)
@@ -900,19 +908,27 @@ def _small_gone_in(
         if (cv2.dilate(own, clear).view(bool) & (l_state[win] == OCCUPIED)).any():
             keep[label] = False
         elif rules.depth_px is not None:
-            unknown = (g_state[win] == UNKNOWN).view(np.uint8)
-            deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= rules.depth_px
+            deep = _deep_unknown(g_state[win], rules.depth_px)
             keep[label] = not (deep & cv2.dilate(own, around).view(bool)).any()
     return np.asarray(cand & keep[labels])
 
 
+def _deep_unknown(g_state: NDArray[np.uint8], depth_px: float) -> BoolArray:
+    """The cells of the global map's unknown area ``depth_px`` deep or more (that far from
+    any known cell, within the array: what lies beyond it counts as far)."""
+    unknown = (g_state == UNKNOWN).view(np.uint8)
+    return np.asarray(cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= depth_px)
+
+
 @dataclass(frozen=True)
 class CutRules:
-    """What :func:`walls_cut_through` asks of a gap, in metres: each part of the wall either
-    side of it at least ``min_part_m`` of cells; of its cells within ``near_gap_m`` of the gap,
-    ``standing_share`` with a local wall within ``seen_m`` (the robot saw it standing); floor in
-    both maps within ``side_m`` of the gap on both sides of the wall, beside ``side_share`` of
-    its cells; no cell of the global map unknown ``unseen_m`` deep within twice that."""
+    """What :func:`walls_cut_through` asks of a piece, in metres (squares of these half-widths
+    where it says "within"): the wall either side of it in two parts of at least
+    ``min_part_m / resolution`` cells each (0.3 m of a line one cell wide); of each part's cells
+    within ``near_gap_m`` of the piece, ``standing_share`` with a local wall within ``seen_m``
+    (the robot saw it standing: one cell of the 0.05 m work grid); for ``side_share`` of the
+    piece's cells, a cell within ``side_m`` that is floor in both maps, on each side of the
+    wall; no cell of the global map unknown ``unseen_m`` deep within twice that."""
 
     min_part_m: float = 0.3
     near_gap_m: float = 0.5
@@ -937,27 +953,16 @@ def walls_cut_through(
     of the piece, with floor on both sides of it in both maps (``rules``).
 
     A gap made in a partition: after a drifting session the end tolerance trims each end of
-    the gap by 0.2 m, and what stays of a gap 0.6 m wide is a few cells across the wall's
-    whole thickness, under the removed floor. A bite out of a thicker wall's face, a fold
-    along it and the end of a wall cut nothing; a face of a structure whose inside the map
-    never saw is no partition; rays through a thin wall that the local map drew nowhere near
-    standing do not see it standing. (H, W) bool, True only on cells of ``removed``; the inputs
-    are not modified. The evidence the removal needs is the caller's to ask.
+    the gap by 0.2 m, and what stays of a gap 0.5 m wide in a wall 0.1 m thick is 4 cells
+    across it, under the removed floor of 8. A bite out of a thicker wall's face, a fold along
+    it and the end of a wall cut nothing; a face of a structure whose inside the map never saw
+    is no partition; a thin wall the local map drew as specks beside the piece was not seen
+    standing. (H, W) bool, True only on cells of ``removed``; the inputs are not modified. The
+    evidence the removal needs is the caller's to ask.
     """
     out = np.zeros(removed.shape, bool)
-    pieces = box_around(removed, 0)
-    if pieces is None:
-        return out
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(
-        removed[pieces].view(np.uint8), connectivity=8
-    )
-    margin = math.ceil(2 * rules.near_gap_m / resolution)
-    for piece in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < smaller_than_px) + 1:
-        x, y, w, h = (int(v) for v in stats[piece, :4])
-        rows, cols = np.nonzero(labels[y : y + h, x : x + w] == piece)
-        rows, cols = rows + pieces[0].start + y, cols + pieces[1].start + x
-        win = box_of_cells(rows, cols, margin, removed.shape)
-        at = (rows - win[0].start, cols - win[1].start)
+    margin_px = math.ceil(2 * rules.near_gap_m / resolution)
+    for win, at in _small_pieces(removed, smaller_than_px, margin_px):
         if _cuts_in(global_state[win], local_state[win], at, resolution, rules):
             out[win][at] = True
     return out
@@ -970,35 +975,18 @@ def _cuts_in(
     resolution: float,
     rules: CutRules,
 ) -> bool:
-    """Whether the piece at cells ``at`` cuts a wall in two in this window
-    (:func:`walls_cut_through`)."""
+    """Whether the piece at cells ``at`` ((rows, cols) in this window of both maps' states)
+    cuts a wall in two (:func:`walls_cut_through`)."""
     piece = np.zeros(g_state.shape, np.uint8)
     piece[at] = 1
-    reach = max(1, round(2 * rules.unseen_m / resolution))
-    unknown = (g_state == UNKNOWN).view(np.uint8)
-    deep = cv2.distanceTransform(unknown, cv2.DIST_L2, 5) >= rules.unseen_m / resolution
-    if (deep & _grown_by(piece, reach)).any():
+    reach_px = max(1, round(2 * rules.unseen_m / resolution))
+    if (_deep_unknown(g_state, rules.unseen_m / resolution) & _grown_by(piece, reach_px)).any():
         return False  # a face of a structure whose inside the map never saw
-    _, walls = cv2.connectedComponents((g_state == OCCUPIED).view(np.uint8), connectivity=8)
-    on = walls[at]
-    on = on[on > 0]
-    if len(on) == 0:
+    ends = _parts_standing(g_state, l_state, piece, resolution, rules)
+    if ends is None:
         return False
-    rest = (walls == np.bincount(on).argmax()).view(np.uint8)
-    rest[at] = 0
-    _, parts, stats, centroids = cv2.connectedComponentsWithStats(rest, connectivity=8)
-    seen = _grown_by((l_state == OCCUPIED).view(np.uint8), max(1, round(rules.seen_m / resolution)))
-    near_gap = _grown_by(piece, round(rules.near_gap_m / resolution))
-    standing = []
-    for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= rules.min_part_m / resolution) + 1:
-        part = (parts == k) & near_gap
-        n = np.count_nonzero(part)
-        if n and np.count_nonzero(part & seen) >= rules.standing_share * n:
-            standing.append(k)
-    if len(standing) < 2:
-        return False
-    # Across the line through the two parts (centroids are (x, y)): floor on both sides.
-    along = centroids[standing[1]][::-1] - centroids[standing[0]][::-1]
+    # Across the line through the two parts: floor on both sides of the wall.
+    along = ends[1] - ends[0]
     across = np.array([-along[1], along[0]]) / max(float(np.hypot(*along)), 1e-9)
     floor = (g_state == FREE) & (l_state == FREE)
     steps = range(1, max(1, round(rules.side_m / resolution)) + 1)
@@ -1014,8 +1002,38 @@ def _cuts_in(
     return True
 
 
+def _parts_standing(
+    g_state: NDArray[np.uint8],
+    l_state: NDArray[np.uint8],
+    piece: NDArray[np.uint8],
+    resolution: float,
+    rules: CutRules,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """The (row, col) centroids of the first two parts (in label order) that the global wall
+    ``piece`` (a 0/1 mask) lies on falls apart into without it and that the local map saw
+    standing near it; None when fewer than two."""
+    _, walls = cv2.connectedComponents((g_state == OCCUPIED).view(np.uint8), connectivity=8)
+    on = walls[piece > 0]
+    on = on[on > 0]
+    if len(on) == 0:
+        return None
+    rest = (walls == np.bincount(on).argmax()).view(np.uint8)
+    rest[piece > 0] = 0
+    _, parts, stats, centroids = cv2.connectedComponentsWithStats(rest, connectivity=8)
+    seen_px = max(1, round(rules.seen_m / resolution))
+    seen = _grown_by((l_state == OCCUPIED).view(np.uint8), seen_px)
+    near_gap = _grown_by(piece, round(rules.near_gap_m / resolution))
+    standing = []
+    for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= rules.min_part_m / resolution) + 1:
+        part = (parts == k) & near_gap
+        n = np.count_nonzero(part)
+        if n and np.count_nonzero(part & seen) >= rules.standing_share * n:
+            standing.append(centroids[k][::-1])  # OpenCV's centroids are (x, y)
+    return (standing[0], standing[1]) if len(standing) >= 2 else None
+
+
 def _grown_by(mask: NDArray[np.uint8], px: int) -> BoolArray:
-    """``mask`` (uint8) grown by ``px`` cells each way (a square), as bool."""
+    """``mask`` (0/1 uint8) grown by ``px`` cells each way (a square), as bool."""
     if px <= 0:
         return mask.view(bool).copy()
     return np.asarray(cv2.dilate(mask, np.ones((2 * px + 1,) * 2, np.uint8))).view(bool)

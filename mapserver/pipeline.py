@@ -644,12 +644,12 @@ def _cluster_masks(
 # unknown rule, 34 for 7.
 # A removed piece under the floor that cuts a thin wall in two (diff.walls_cut_through) is
 # reported from min_local_cells on, like a small structure seen gone whole: what stays of a gap
-# 0.5-0.7 m wide cut through a partition once the end tolerance (0.2 m each end after a
-# drifting session) has trimmed it is 4-5 cells across the wall. The wall must stand in the
-# local map on both sides of it (65 % of its cells within 0.5 m of the piece next to a local
-# wall, within a cell: within 0.1 m, scattered specks 0.25 m apart, rays through a thin wall,
-# passed for it, 2 false positives on s20_1303 and noise1302 among 9 changes found) and both
-# maps must show floor on both sides (no face of a block, no notch in a thicker wall).
+# about 0.5 m wide cut through a partition 0.05-0.1 m thick, once the end tolerance (0.2 m each
+# end after a drifting session) has trimmed it, is 4-7 cells across the wall. The wall must
+# stand in the local map on both sides of it (65 % of its cells within 0.5 m of the piece
+# next to a local wall, within one cell: within 0.1 m, specks 0.25 m apart, rays through a
+# thin wall, passed for it, 2 false positives on s20_1303 and noise1302 among 9 changes found)
+# and both maps must show floor on both sides (no face of a block, no notch in a thicker wall).
 # Session 35, over the 68 sets: 5 more changes found (3 in held-out sets), no false positive.
 _CUT_RULES = diff_stage.CutRules()
 _SMALL_MIN_CELLS = 3

@@ -1050,12 +1050,12 @@ def test_a_small_cluster_is_kept_when_most_of_it_is_a_structure_seen_gone_whole(
 
 def _partition() -> tuple[np.ndarray, np.ndarray]:
     """A room 5 m x 5 m at 0.05 m split by a partition 0.1 m thick (rows 50-51) from wall to
-    wall, floor on both sides in both maps; in the local map a gap 0.6 m wide cut through it
-    (columns 44-55)."""
+    wall, floor on both sides in both maps; in the local map a gap 0.5 m wide cut through it
+    (columns 45-54)."""
     g = np.full((100, 100), FREE, np.uint8)
     g[50:52, :] = OCCUPIED
     loc = g.copy()
-    loc[50:52, 44:56] = FREE
+    loc[50:52, 45:55] = FREE
     return g, loc
 
 
@@ -1064,7 +1064,8 @@ def _cut(g: np.ndarray, loc: np.ndarray, removed: np.ndarray) -> np.ndarray:
 
 
 def _trimmed(shape: tuple[int, int], cols: slice) -> np.ndarray:
-    """What the end tolerance leaves of the gap: the cells across the partition in ``cols``."""
+    """The cells across the partition in ``cols``: what the end tolerance leaves of the gap
+    (columns 49-50 of 45-54: 0.2 m trimmed at each end)."""
     removed = np.zeros(shape, bool)
     removed[50:52, cols] = True
     return removed
@@ -1076,31 +1077,39 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_marked() -> None:
     g0, loc0 = g.copy(), loc.copy()
     removed = _trimmed(g.shape, slice(49, 51))
     out = _cut(g, loc, removed)
-    assert out.sum() == 4 and (out == removed).all()
     assert (g == g0).all() and (loc == loc0).all() and removed.sum() == 4
-    # Not a small piece: the usual floor judges it.
+    assert out.sum() == 4 and (out == removed).all()
+    # 8 cells are no small piece: the usual floor judges them.
     assert not _cut(g, loc, _trimmed(g.shape, slice(48, 52))).any()
 
 
 def test_a_piece_that_cuts_no_partition_in_two_is_not_marked() -> None:
     """Not: a bite out of the face of a wall 0.3 m thick (what is left holds together); the
-    last cells of a wall's end (one part only); the partition seen standing on one side of the
-    piece only; a partition the local map drew as scattered specks (rays through it)."""
+    last cells of a wall's end (one part only), or a stub 0.1 m long left past it; the
+    partition seen standing on one side of the piece only; a partition the local map drew as
+    specks 0.25 m apart (rays through it: within 0.1 m of a speck, they would pass for the
+    wall standing)."""
     g, loc = _partition()
     g[50:56, :] = OCCUPIED  # 0.3 m thick
     loc[50:56, :] = OCCUPIED
-    loc[50:52, 44:56] = FREE
+    loc[50:52, 45:55] = FREE
     assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
     g, loc = _partition()
     g[50:52, 60:] = FREE  # the partition ends at column 59
-    loc[50:52, 56:] = FREE
+    loc[50:52, 55:] = FREE
     assert not _cut(g, loc, _trimmed(g.shape, slice(58, 60))).any()
     g, loc = _partition()
-    loc[50:52, 56:] = FREE  # seen gone east of the gap too
+    g[50:52, 62:] = FREE  # the partition ends 0.1 m past the piece: a stub, no part
+    loc = g.copy()
+    loc[50:52, 54:60] = FREE
+    assert not _cut(g, loc, _trimmed(g.shape, slice(58, 60))).any()
+    g, loc = _partition()
+    loc[50:52, 55:] = FREE  # seen gone east of the gap too
     assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
     g, loc = _partition()
     loc[50:52, :] = FREE
-    loc[50, ::8] = OCCUPIED  # a speck every 0.4 m
+    loc[50, 4:45:5] = OCCUPIED  # a speck every 0.25 m up to the gap's ends
+    loc[50, 55::5] = OCCUPIED
     assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
 
 

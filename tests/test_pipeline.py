@@ -346,7 +346,7 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_reported() -> None:
     g = np.full((100, 100), FREE, np.uint8)
     g[50:52, :] = OCCUPIED
     seen = g.copy()
-    seen[50:52, 44:56] = FREE
+    seen[50:52, 45:55] = FREE  # a gap 0.5 m wide, trimmed 0.2 m at each end to the piece
     piece = np.zeros((100, 100), bool)
     piece[50:52, 49:51] = True
     masks = diff_stage.DiffMasks(added=np.zeros_like(piece), removed=piece)
