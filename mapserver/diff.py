@@ -17,7 +17,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.grid import Grid, RouteDistance, box_around, box_of_cells, grown, nonzero_cells
+from mapserver.grid import (
+    Grid,
+    RouteDistance,
+    any_along,
+    box_around,
+    box_of_cells,
+    grown,
+    nonzero_cells,
+)
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
@@ -989,17 +997,12 @@ def _cuts_in(
     along = ends[1] - ends[0]
     across = np.array([-along[1], along[0]]) / max(float(np.hypot(*along)), 1e-9)
     floor = (g_state == FREE) & (l_state == FREE)
-    steps = range(1, max(1, round(rules.side_m / resolution)) + 1)
-    for sign in (1, -1):
-        beside = np.zeros(len(at[0]), bool)
-        for step in steps:
-            r = np.rint(at[0] + sign * step * across[0]).astype(np.intp)
-            c = np.rint(at[1] + sign * step * across[1]).astype(np.intp)
-            inside = (r >= 0) & (r < floor.shape[0]) & (c >= 0) & (c < floor.shape[1])
-            beside[inside] |= floor[r[inside], c[inside]]
-        if beside.mean() < rules.side_share:
-            return False
-    return True
+    steps = max(1, round(rules.side_m / resolution))
+    return all(
+        any_along(floor, at[0], at[1], sign * across[0], sign * across[1], steps).mean()
+        >= rules.side_share
+        for sign in (1, -1)
+    )
 
 
 def _parts_standing(

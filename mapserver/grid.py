@@ -233,6 +233,29 @@ def nonzero_cells(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np
     return cells[:, 1] + y, cells[:, 0] + x
 
 
+def any_along(
+    mask: NDArray[np.bool_],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    dr: ArrayLike,
+    dc: ArrayLike,
+    steps: int,
+    norm: ArrayLike = 1.0,
+) -> NDArray[np.bool_]:
+    """(N,) bool: whether ``mask`` is True at one of the cells ``k * (dr, dc) / norm`` away
+    from each cell (``rows``, ``cols``: (N,)), for k = 1..``steps``, rounded to the nearest
+    cell; a cell off the array is not. ``dr``, ``dc``, ``norm``: scalars or (N,), one
+    direction for every cell or one each (a unit one with ``norm`` 1)."""
+    found = np.zeros(len(rows), bool)
+    h, w = mask.shape
+    for k in range(1, steps + 1):
+        r = np.rint(rows + k * np.asarray(dr) / np.asarray(norm)).astype(np.intp)
+        c = np.rint(cols + k * np.asarray(dc) / np.asarray(norm)).astype(np.intp)
+        on = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        found[on] |= mask[r[on], c[on]]
+    return found
+
+
 def densify(polyline: NDArray[np.float64], step: float) -> NDArray[np.float64]:
     """The points of ``polyline`` (N, 2) and, on each leg, points at most ``step`` apart (in
     its own units): its vertices kept, its end exact."""

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, offset_distances
-from mapserver.grid import box_of_cells, nonzero_cells
+from mapserver.grid import any_along, box_of_cells, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED
 
 BoolArray = NDArray[np.bool_]
@@ -341,12 +341,8 @@ def faces_seen_from_behind(
         nearest = at[labels[wr, wc]]
         dr, dc = wr - nearest[:, 0], wc - nearest[:, 1]
         norm = np.maximum(np.hypot(dr, dc), 1e-9)
-        h, w = local.shape
-        for k in range(1, steps + 1):
-            br = np.rint(wr + k * dr / norm).astype(np.intp)
-            bc = np.rint(wc + k * dc / norm).astype(np.intp)
-            on = (br >= 0) & (br < h) & (bc >= 0) & (bc < w)  # off the map: nothing seen
-            seen[on] |= local[br[on], bc[on]] == FREE
+        # Off the map: nothing seen.
+        seen = any_along(local == FREE, wr, wc, dr, dc, steps, norm)
     solid = _depth_in(global_walls[box])
     depth = min(float(solid[r, c].max()), math.ceil(reach) + steps + 1) * resolution
     return Faces(len(wr), int(np.count_nonzero(seen)), depth)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mapserver.grid import Grid, RouteDistance, any_in_blocks, route_distance
+from mapserver.grid import Grid, RouteDistance, any_along, any_in_blocks, route_distance
 
 
 def test_sample_reads_the_nearest_pixel_and_fills_off_the_grid() -> None:
@@ -66,3 +66,24 @@ def test_how_far_from_the_route_a_map_saw_anything() -> None:
     assert route.farthest(np.zeros((40, 40), bool)) == 0.0
     with pytest.raises(ValueError):
         route.farthest(np.ones((20, 40), bool))
+
+
+def test_any_along_looks_the_given_steps_each_way_a_cell_points() -> None:
+    """A True cell 3 cells east of (5, 5): seen within 3 steps east, not within 2, not west;
+    south-west, (1, -1) / sqrt(2) steps round to the cells of the diagonal; a step off the
+    array sees nothing; one direction per cell."""
+    mask = np.zeros((10, 10), bool)
+    mask[5, 8] = True
+    mask[8, 2] = True
+    rows, cols = np.array([5]), np.array([5])
+    assert any_along(mask, rows, cols, 0.0, 1.0, 3).tolist() == [True]
+    assert any_along(mask, rows, cols, 0.0, 1.0, 2).tolist() == [False]
+    assert any_along(mask, rows, cols, 0.0, -1.0, 5).tolist() == [False]
+    assert any_along(mask, rows, cols, 1.0, -1.0, 3, math.sqrt(2)).tolist() == [False]
+    assert any_along(mask, rows, cols, 1.0, -1.0, 5, math.sqrt(2)).tolist() == [True]
+    edge = np.array([0]), np.array([8])
+    assert any_along(mask, *edge, -1.0, 0.0, 4).tolist() == [False]
+    both = np.array([5, 5]), np.array([5, 5])
+    dr, dc = np.array([0, 3]), np.array([3, -3])
+    norm = np.hypot(dr, dc)
+    assert any_along(mask, *both, dr, dc, 4, norm).tolist() == [True, True]
