@@ -1,0 +1,65 @@
+"""benchmarks/run_sets.py: the benchmark sets issue 12 is measured on, kept in the repository
+(``benchmarks/sets.tsv``), and the comparison of two runs over them."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+from bench_support import benchmark_module
+
+
+@pytest.fixture(scope="module")
+def rs() -> Iterator[ModuleType]:
+    with benchmark_module("run_sets") as module:
+        yield module
+
+
+def test_every_listed_set_is_one_make_scenarios_can_make(rs: ModuleType, tmp_path: Path) -> None:
+    with benchmark_module("make_scenarios") as ms:
+        parser = ms.build_parser()
+        sets = rs.read_sets(tmp_path, public=True)
+        assert [s.name for s in sets[:2]] == ["public", "public-realism"]
+        names = [s.name for s in sets]
+        assert len(names) == len(set(names))
+        for s in sets[2:]:
+            assert s.role in ("tuning", "held")
+            assert s.path == tmp_path / s.name
+            args = parser.parse_args([str(s.path), *s.args])
+            # Each case named exists; a typo would make a set of other scenarios.
+            assert set(args.cases.split(",")) <= set(ms.CASES), s.name
+            assert args.count > 0
+
+
+def _run(directory: Path, role: str, **sets: tuple[int, int, int, int]) -> None:
+    directory.mkdir()
+    for name, (matched, observed, correct, fp) in sets.items():
+        total = {
+            "matched": matched,
+            "observed": observed,
+            "correct": correct,
+            "false_positive": fp,
+            "f1": 0.0,
+        }
+        (directory / f"{name}.json").write_text(json.dumps({"total": total, "role": role}))
+
+
+def test_compare_names_the_sets_that_moved_and_sums_each_role(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _run(tmp_path / "a", "tuning", one=(8, 10, 9, 1), two=(5, 5, 5, 0))
+    _run(tmp_path / "b", "tuning", one=(9, 10, 10, 2), two=(5, 5, 5, 0))
+    args = type("Args", (), {"before": str(tmp_path / "a"), "after": str(tmp_path / "b")})
+    assert rs.compare(args) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("one ") and "found 8 -> 9 / 10" in out[0] and "FP 1 -> 2" in out[0]
+    assert out[1] == "1 of 2 sets unchanged"
+    # Before: P 14/15, R 13/15; after: P 15/17, R 14/15.
+    before_f1 = 2 * (14 / 15) * (13 / 15) / (14 / 15 + 13 / 15)
+    after_f1 = 2 * (15 / 17) * (14 / 15) / (15 / 17 + 14 / 15)
+    assert out[2] == (
+        f"tuning   2 sets: F1 {before_f1:.4f} -> {after_f1:.4f}  found 13 -> 14 / 15  FP 1 -> 2"
+    )
