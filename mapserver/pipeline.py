@@ -575,6 +575,12 @@ def _cluster_masks(
     cell_m2 = local.resolution**2
     added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
     removed_floor = max(d.min_local_cells, d.min_removed_cells)
+    # The floor in cells of the work grid, on which the rescue rules below count a piece's
+    # cells: the grid is the global map's, finer than a local map of 0.1 m cells (until
+    # session 36 they were given the local cells' count, so on such a map only pieces of one
+    # or two local cells were ever asked, and a thin wall's piece of 4-7 local cells, seen
+    # gone whole, never).
+    floor_px = math.ceil(removed_floor * (local.resolution / grid.resolution) ** 2)
     whole = None
     if d.small_structure_m > 0:
         global_state, local_state = states
@@ -583,7 +589,7 @@ def _cluster_masks(
             local_state,
             masks.removed,
             resolution=grid.resolution,
-            smaller_than_px=removed_floor,
+            smaller_than_px=floor_px,
             max_extent_m=d.small_structure_m,
             min_px=_SMALL_MIN_CELLS * (global_res_m / grid.resolution) ** 2,
             min_share=_SMALL_SEEN_SHARE,
@@ -596,7 +602,7 @@ def _cluster_masks(
         states[1],
         masks.removed,
         resolution=grid.resolution,
-        smaller_than_px=removed_floor,
+        smaller_than_px=floor_px,
         rules=_CUT_RULES,
     )
     whole = cut if whole is None else whole | cut

@@ -337,6 +337,28 @@ def test_a_small_structure_is_counted_in_the_global_maps_cells(
     assert [d.kind for d in found] == kinds
 
 
+@pytest.mark.parametrize(("height_px", "kinds"), [(6, ["removed"]), (3, [])])
+def test_a_small_structure_seen_gone_on_a_coarse_local_map_is_reported(
+    height_px: int, kinds: list[str]
+) -> None:
+    """A local map of 0.1 m cells on a 0.05 m global map: an object 0.2 m x 0.3 m (24 work
+    cells, 6 local cells) seen gone whole is under the removed floor of 8 local cells (32 work
+    cells) and reported as a small structure; one of 0.2 m x 0.15 m (3 local cells) is under
+    the 4 local cells any difference needs. Until session 36 the rescue rules were handed the
+    floor as 8 work cells, and the first was never asked."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((50, 50), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
+    seen = np.full((100, 100), FREE, np.uint8)  # the local map on the work grid
+    g = seen.copy()
+    g[40 : 40 + height_px, 40:44] = OCCUPIED
+    gone = (g == OCCUPIED) & (seen == FREE)
+    config = Config()
+    assert gone.sum() * 0.05**2 < config.pipeline.diff.min_removed_cells * 0.1**2
+    masks = diff_stage.DiffMasks(added=np.zeros_like(gone), removed=gone)
+    found = pipeline._cluster_masks(masks, gone, grid, config, local, (g, seen), 0.05)
+    assert [d.kind for d in found] == kinds
+
+
 def test_what_stays_of_a_gap_cut_through_a_partition_is_reported() -> None:
     """A partition 0.1 m thick between two rooms, seen standing either side of a gap cut
     through it: the 4 cells the end tolerance leaves of the gap (0.01 m2, under the removed
