@@ -127,7 +127,8 @@ class DiffConfig(_Frozen):
     where it was. A wall face eroded by grazing rays has neither."""
     both_sides_m: float = Field(1.0, ge=0)
     """... or seen free from both sides of the structure, open space on each within this
-    distance, and no wall seen in between (a thick wall's piece whose middle no ray reached)."""
+    distance, each side seen free past the face's own row, and no wall seen in between (a thick
+    wall's piece whose middle no ray reached)."""
     removed_evidence_share: float = Field(0.5, ge=0, le=1)
     """The share of a removed obstacle's cells that must show one of those two ..."""
     removed_evidence_m2: float = Field(0.05, gt=0)

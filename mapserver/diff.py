@@ -467,8 +467,11 @@ def removal_evidence(
     With ``both_sides_m`` > 0, a cell also counts when open space lies on both sides of it
     within that distance along a line that crosses only the structure's cells the robot did not
     see occupied: it saw the structure from both sides, free on each, and nowhere a wall in it (a
-    piece of a thick wall seen from the corridors on either side, its middle unseen). A face
-    seen from one side only has no open space behind it.
+    piece of a thick wall seen from the corridors on either side, its middle unseen). On each
+    side the line must enter the structure through cells seen free past the face's own row
+    (which grazing rays erode): two faces of a block standing, grazed and eroded, one of them a
+    row deep only, with its middle unseen, are not a structure seen through (session 36). A
+    face seen from one side only has no open space behind it.
 
     Open space on both sides does not count within ``depth_m`` of a structure's inside deeper
     than ``depth_m`` that the robot never saw: along a ragged face, not through the structure.
@@ -584,11 +587,17 @@ def removal_evidence(
         # line through a face eroded a cell deep reaches open space at the structure's ends):
         # the line passes a cell deeper inside than depth_m. And not the face's own row of
         # cells, the one grazing rays erode.
-        rest = cand & ~found & (depth > 1.5 * resolution)
+        past_face = depth > 1.5 * resolution
+        rest = cand & ~found & past_face
         if rest.any():
             passable = g_occ & (local_state[box] != OCCUPIED)
             deep = depth >= depth_m
             start = open_space > 0
+            # On each side the robot saw into the structure past that row: cells seen free
+            # beyond it, in line with open space through cells seen free. Two faces eroded a
+            # row deep, the middle unseen, are what grazing rays draw of a block standing.
+            inside_free = g_occ & seen_free
+            entered = inside_free & past_face
             # Each piece in a window around it (pieces lie far apart on a large map).
             n, labels, stats, _ = cv2.connectedComponentsWithStats(rest.view(np.uint8))
             for k in range(1, n):
@@ -599,9 +608,15 @@ def removal_evidence(
                 )
                 piece = labels[win] == k
                 for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-                    args = (start[win], passable[win], deep[win])
-                    ahead, ahead_deep = _reached(*args, (dr, dc), across)
-                    behind, behind_deep = _reached(*args, (-dr, -dc), across)
+                    sides = []
+                    for step in ((dr, dc), (-dr, -dc)):
+                        walked, _ = _reached(start[win], inside_free[win], None, step, across)
+                        entry = walked & entered[win]
+                        reached, reached_deep = _reached(
+                            entry, passable[win], deep[win], step, across
+                        )
+                        sides.append((reached | entry, reached_deep))
+                    (ahead, ahead_deep), (behind, behind_deep) = sides
                     found[win] |= piece & ahead & behind & (ahead_deep | behind_deep)
     # Nothing behind a face seen standing: the robot saw a cell free only along a ray that
     # came from open space; where the face between them is seen intact, the free cells inside

@@ -541,6 +541,28 @@ def test_a_thick_wall_s_face_eroded_is_no_evidence_even_seen_from_both_sides() -
     assert not removal_evidence(g, loc, strip, **kw, both_sides_m=1.0).any()
 
 
+def test_a_block_eroded_deep_on_one_face_and_a_row_on_the_other_is_no_evidence() -> None:
+    """Grazing rays along both faces of a block 0.6 m thick, its middle unseen: one face eroded
+    two rows deep over 1 m, the other only its own row. Open space on both sides and nothing
+    seen occupied in between, yet on one side the robot saw no deeper than the face's row: no
+    evidence (the depth rule alone decides, and two rows are under its depth). Seen two rows
+    deep on that side too, it is the thick wall's piece seen from both sides, evidence."""
+    g, loc = _thick_wall()
+    loc[20, :] = loc[31, :] = UNKNOWN
+    loc[30:32, 20:40] = FREE  # two rows deep from below
+    loc[20, 20:40] = FREE  # the face's own row from above
+    strip = (g == OCCUPIED) & (loc == FREE)
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35}
+    assert not removal_evidence(g, loc, strip, **kw).any()
+    assert not removal_evidence(g, loc, strip, **kw, both_sides_m=1.0).any()
+    loc[21, 20:40] = FREE  # a row past the face from above as well
+    deeper = (g == OCCUPIED) & (loc == FREE)
+    both = removal_evidence(g, loc, deeper, **kw, both_sides_m=1.0)
+    # The cells past each face's row; the face rows themselves are what grazing rays erode.
+    assert both[21, 20:40].all() and both[30, 20:40].all()
+    assert not both[[20, 31], :].any() and not (both & ~deeper).any()
+
+
 def test_a_gap_in_a_wall_is_removed_up_to_the_smaller_end_tolerance() -> None:
     g, loc, roi = _maps()
     loc[44:56, 48:51] = FREE  # 0.6 m of the wall gone; its ends seen where drawn
