@@ -608,16 +608,21 @@ def removal_evidence(
                 )
                 piece = labels[win] == k
                 for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-                    sides = []
+                    args = (start[win], passable[win], deep[win])
+                    ahead, ahead_deep = _reached(*args, (dr, dc), across)
+                    behind, behind_deep = _reached(*args, (-dr, -dc), across)
+                    through_cells = piece & ahead & behind & (ahead_deep | behind_deep)
+                    if not through_cells.any():
+                        continue
+                    # ... and on each side through the cells seen free past the face's row.
+                    # Asked on top of the reach above, never instead: a line is still as long
+                    # as both_sides_m, from open space to open space.
                     for step in ((dr, dc), (-dr, -dc)):
                         walked, _ = _reached(start[win], inside_free[win], None, step, across)
                         entry = walked & entered[win]
-                        reached, reached_deep = _reached(
-                            entry, passable[win], deep[win], step, across
-                        )
-                        sides.append((reached | entry, reached_deep))
-                    (ahead, ahead_deep), (behind, behind_deep) = sides
-                    found[win] |= piece & ahead & behind & (ahead_deep | behind_deep)
+                        beyond, _ = _reached(entry, passable[win], None, step, across)
+                        through_cells &= entry | beyond
+                    found[win] |= through_cells
     # Nothing behind a face seen standing: the robot saw a cell free only along a ray that
     # came from open space; where the face between them is seen intact, the free cells inside
     # came from a part of the local map laid over the wrong place, not from a ray.

@@ -563,6 +563,27 @@ def test_a_block_eroded_deep_on_one_face_and_a_row_on_the_other_is_no_evidence()
     assert not both[[20, 31], :].any() and not (both & ~deeper).any()
 
 
+def test_seen_past_the_face_on_both_sides_never_adds_evidence_beyond_both_sides_m() -> None:
+    """A wall 1.1 m thick ending in open space, its faces and its end eroded two rows deep, its
+    middle unseen: asking each side to be seen free past its face's row only takes cells away
+    from the both-sides rule. Its lines still run from open space to open space within
+    ``both_sides_m`` (found in review: walking to the entry and on from it, each for the whole
+    distance, reached twice as far)."""
+    g = np.full((62, 60), FREE, np.uint8)
+    g[20:42, :45] = OCCUPIED
+    loc = np.where(g == OCCUPIED, UNKNOWN, FREE).astype(np.uint8)
+    loc[20:22, 20:45] = loc[40:42, 20:45] = FREE  # the long faces, two rows
+    loc[20:42, 43:45] = FREE  # the end face, two columns
+    gone = (g == OCCUPIED) & (loc == FREE)
+    kw = {"resolution": 0.05, "depth_m": 0.15, "see_through_m": 0.35}
+    alone = removal_evidence(g, loc, gone, **kw)
+    both = removal_evidence(g, loc, gone, **kw, both_sides_m=1.0)
+    reach = removal_evidence(g, loc, gone, **kw, both_sides_m=2.0)
+    assert (alone <= both).all() and (both <= reach).all()
+    # Cell (21, 20): 21 rows from the open space below, through the unseen middle, 2 above.
+    assert not both[21, 20] and reach[21, 20]
+
+
 def test_a_gap_in_a_wall_is_removed_up_to_the_smaller_end_tolerance() -> None:
     g, loc, roi = _maps()
     loc[44:56, 48:51] = FREE  # 0.6 m of the wall gone; its ends seen where drawn
