@@ -576,10 +576,10 @@ def _cluster_masks(
     added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
     removed_floor = max(d.min_local_cells, d.min_removed_cells)
     # The floor in cells of the work grid, on which the rescue rules below count a piece's
-    # cells: the grid is the global map's, finer than a local map of 0.1 m cells (until
-    # session 36 they were given the local cells' count, so on such a map only pieces of one
-    # or two local cells were ever asked, and a thin wall's piece of 4-7 local cells, seen
-    # gone whole, never).
+    # cells: the grid has the finer of the two maps' cells, four to a local cell on a 0.1 m
+    # local map over a 0.05 m global map (until session 36 the rules were given the local
+    # cells' count, so on such a map only pieces under two local cells were ever asked, and
+    # a thin wall's piece of 4-7 local cells, seen gone whole, never).
     floor_px = math.ceil(removed_floor * (local.resolution / grid.resolution) ** 2)
     whole = None
     if d.small_structure_m > 0:
