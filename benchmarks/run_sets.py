@@ -51,38 +51,57 @@ def read_sets(sets_dir: Path, public: bool) -> list[BenchSet]:
     return found
 
 
-def _generate(bench_set: BenchSet) -> None:
+def _last_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[-1] if lines else "(nothing printed)"
+
+
+def _generate(bench_set: BenchSet) -> str | None:
+    """Make the set unless it is there; the error's last line when that failed."""
     if (bench_set.path / "set.yaml").exists() or not bench_set.args:
-        return
+        return None
     cmd = [sys.executable, str(HERE / "make_scenarios.py"), str(bench_set.path), *bench_set.args]
-    subprocess.run(cmd, check=True, capture_output=True)
-
-
-def _run_one(bench_set: BenchSet, run_dir: Path, config: str | None) -> str:
-    _generate(bench_set)
-    cmd = [sys.executable, str(HERE / "bench_public.py"), str(bench_set.path)]
-    cmd += ["--out", str(run_dir / bench_set.name), "--json"]
-    if config:
-        cmd += ["--config", config]
     done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0:
-        return f"{bench_set.name:12s} FAILED: {done.stderr.strip().splitlines()[-1:]}"
+    return None if done.returncode == 0 else f"make_scenarios.py: {_last_line(done.stderr)}"
+
+
+def _run_one(bench_set: BenchSet, run_dir: Path, config: str | None) -> tuple[bool, str]:
+    """Run one set: (done, its line). A failed set leaves no JSON document behind, so that
+    ``compare`` never reads an earlier run's numbers as this one's."""
+    document_path = run_dir / f"{bench_set.name}.json"
+    document_path.unlink(missing_ok=True)
+    error = _generate(bench_set)
+    if error is None:
+        cmd = [sys.executable, str(HERE / "bench_public.py"), str(bench_set.path)]
+        cmd += ["--out", str(run_dir / bench_set.name), "--json"]
+        if config:
+            cmd += ["--config", config]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            error = f"bench_public.py: {_last_line(done.stderr)}"
+    if error is not None:
+        return False, f"{bench_set.name:12s} FAILED: {error}"
     document = json.loads(done.stdout)
     document["role"] = bench_set.role
-    (run_dir / f"{bench_set.name}.json").write_text(json.dumps(document))
-    return f"{bench_set.name:12s} {_line(document['total'])}"
+    document_path.write_text(json.dumps(document))
+    return True, f"{bench_set.name:12s} {_line(document['total'])}"
 
 
-def _line(total: dict[str, float]) -> str:
+def _line(total: dict[str, float | None]) -> str:
+    def num(key: str) -> str:
+        value = total.get(key)
+        return "-" if value is None else f"{value:.3f}"
+
     found = f"{total['matched']}/{total['observed']}"
     return (
-        f"P {total['precision']:.3f} R {total['recall']:.3f} F1 {total['f1']:.3f}"
+        f"P {num('precision')} R {num('recall')} F1 {num('f1')}"
         f"  found {found:>8s}  FP {total['false_positive']:3d}"
-        f"  align p90 {total['alignment_error_p90_m']:.3f} m"
+        f"  align p90 {num('alignment_error_p90_m')} m"
     )
 
 
 def run(args: argparse.Namespace) -> int:
+    """Every chosen set; exit status 1 when any of them failed (each says why)."""
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     chosen = [
@@ -90,10 +109,14 @@ def run(args: argparse.Namespace) -> int:
         for s in read_sets(Path(args.sets), args.public)
         if not args.only or any(word in s.name for word in args.only.split(","))
     ]
+    failed = 0
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        for line in pool.map(lambda s: _run_one(s, run_dir, args.config), chosen):
+        for done, line in pool.map(lambda s: _run_one(s, run_dir, args.config), chosen):
+            failed += not done
             print(line, flush=True)
-    return 0
+    if failed:
+        print(f"{failed} of {len(chosen)} sets failed", flush=True)
+    return 1 if failed else 0
 
 
 def _load(run_dir: Path) -> dict[str, dict[str, object]]:
@@ -113,6 +136,8 @@ def _sum(docs: list[dict[str, object]]) -> dict[str, float]:
 def compare(args: argparse.Namespace) -> int:
     before, after = _load(Path(args.before)), _load(Path(args.after))
     common = sorted(set(before) & set(after))
+    for name in sorted(set(before) ^ set(after)):
+        print(f"{name:12s} only in {args.before if name in before else args.after}: not compared")
     same = 0
     for name in common:
         b, a = before[name]["total"], after[name]["total"]  # type: ignore[index]

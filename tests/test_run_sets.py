@@ -29,9 +29,11 @@ def test_every_listed_set_is_one_make_scenarios_can_make(rs: ModuleType, tmp_pat
             assert s.role in ("tuning", "held")
             assert s.path == tmp_path / s.name
             args = parser.parse_args([str(s.path), *s.args])
-            # Each case named exists; a typo would make a set of other scenarios.
+            # Each case and session option named exists: a typo would make other scenarios
+            # (make_scenarios.py says so and exits, through parser.error).
             assert set(args.cases.split(",")) <= set(ms.CASES), s.name
             assert args.count > 0
+            ms._parse_overrides(args.override, parser)
 
 
 def _run(directory: Path, role: str, **sets: tuple[int, int, int, int]) -> None:
@@ -63,3 +65,27 @@ def test_compare_names_the_sets_that_moved_and_sums_each_role(
     assert out[2] == (
         f"tuning   2 sets: F1 {before_f1:.4f} -> {after_f1:.4f}  found 13 -> 14 / 15  FP 1 -> 2"
     )
+
+
+def test_a_set_that_fails_leaves_no_numbers_behind(rs: ModuleType, tmp_path: Path) -> None:
+    """A stored set that is not there: its line says FAILED and why, and the run's earlier JSON
+    document of it is gone (compare would read it as this run's)."""
+    missing = rs.BenchSet("gone", "tuning", (), tmp_path / "no-such-set")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "gone.json").write_text("{}")
+    done, line = rs._run_one(missing, run_dir, None)
+    assert not done and line.startswith("gone") and "FAILED: bench_public.py:" in line
+    assert not (run_dir / "gone.json").exists()
+
+
+def test_compare_says_which_sets_only_one_run_has(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _run(tmp_path / "a", "held", one=(5, 5, 5, 0), two=(4, 5, 4, 1))
+    _run(tmp_path / "b", "held", one=(5, 5, 5, 0))
+    args = type("Args", (), {"before": str(tmp_path / "a"), "after": str(tmp_path / "b")})
+    rs.compare(args)
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"two          only in {tmp_path / 'a'}: not compared"
+    assert out[1] == "1 of 1 sets unchanged"
