@@ -25,6 +25,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapserver.scoring import f1_from, precision_from_counts, recall_from_counts
+
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "bench"
 
@@ -124,12 +126,14 @@ def _load(run_dir: Path) -> dict[str, dict[str, object]]:
 
 
 def _sum(docs: list[dict[str, object]]) -> dict[str, float]:
+    """The sets' counts added up, and precision, recall and F1 of the sums (contract section
+    4, as ``mapserver.scoring`` computes them for one set)."""
     keys = ("matched", "observed", "correct", "false_positive")
-    totals = {k: float(sum(d["total"][k] for d in docs)) for k in keys}  # type: ignore[index]
-    precision = totals["correct"] / max(1.0, totals["correct"] + totals["false_positive"])
-    recall = totals["matched"] / max(1.0, totals["observed"])
-    totals["f1"] = 2 * precision * recall / max(1e-9, precision + recall)
-    totals["precision"], totals["recall"] = precision, recall
+    counts = {k: sum(d["total"][k] for d in docs) for k in keys}  # type: ignore[index]
+    precision = precision_from_counts(counts["correct"], counts["false_positive"])
+    recall = recall_from_counts(counts["matched"], counts["observed"])
+    totals = {k: float(v) for k, v in counts.items()}
+    totals.update(precision=precision, recall=recall, f1=f1_from(precision, recall))
     return totals
 
 
