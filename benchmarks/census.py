@@ -35,6 +35,9 @@ Usage (the same ``--config`` as the run, if it had one)::
     .venv/bin/python benchmarks/bench_public.py SET --out /tmp/run
     .venv/bin/python benchmarks/census.py SET /tmp/run [BUNDLE_SUBSTRING ...] [--all]
 
+``--counts FILE`` also writes the summary's counts as JSON: ``run_sets.py census`` runs this on
+many sets and adds them up.
+
 The observers wrap module-level functions of the pipeline (``OBSERVED``); its tests run this
 script on bundles, and check that the checks' verdicts as recorded here drop exactly what the
 re-fit drops, so a stage renamed or a rule changed in the pipeline breaks a test, not a census.
@@ -45,6 +48,7 @@ is said so (``MISMATCH``).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -368,6 +372,20 @@ class Census:
     misses: Counter[tuple[str, str]] = field(default_factory=Counter)
     judged: Counter[tuple[str, str, str]] = field(default_factory=Counter)
 
+    def to_doc(self) -> dict[str, list[list[str | int]]]:
+        """The counts as a JSON-ready document (``--counts``): rows of the keys and the count."""
+        return {
+            "misses": [[*key, n] for key, n in sorted(self.misses.items())],
+            "judged": [[*key, n] for key, n in sorted(self.judged.items())],
+        }
+
+    def add_doc(self, doc: dict[str, list[list[Any]]]) -> None:
+        """Add the counts of a :meth:`to_doc` document (another set's) to these."""
+        for *key, n in doc["misses"]:
+            self.misses[(key[0], key[1])] += int(n)
+        for *key, n in doc["judged"]:
+            self.judged[(key[0], key[1], key[2])] += int(n)
+
 
 def census_of_bundle(
     case: Case, truth: Truth, result: Result | None, config: Config, census: Census, *, every: bool
@@ -476,6 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bundles", nargs="*", help="only bundles whose id contains one of these")
     parser.add_argument("--all", action="store_true", help="every bundle and judged difference")
     parser.add_argument("--config", type=Path, help="the configuration the run used")
+    parser.add_argument("--counts", type=Path, help="also write the counts here, as JSON")
     args = parser.parse_args(argv)
     config = load_config(args.config)
     census = Census()
@@ -490,6 +509,8 @@ def main(argv: list[str] | None = None) -> int:
         for line in census_of_bundle(case, truth, result, config, census, every=args.all):
             print(line, flush=True)
     print("\n".join(summary_lines(census)))
+    if args.counts is not None:
+        args.counts.write_text(json.dumps(census.to_doc()), encoding="utf-8")
     return 0
 
 

@@ -7,12 +7,21 @@ in the repository and the commands in one place::
     .venv/bin/python benchmarks/run_sets.py run /tmp/run-a                  # every set, 2 at once
     .venv/bin/python benchmarks/run_sets.py run /tmp/run-b --only drift     # names containing drift
     .venv/bin/python benchmarks/run_sets.py compare /tmp/run-a /tmp/run-b   # per set, and totals
+    .venv/bin/python benchmarks/run_sets.py census /tmp/run-a --only drift --all  # where lost
 
 ``run`` generates each missing set under ``--sets`` (default ``/tmp/mapserver-sets``) with
 ``make_scenarios.py``, runs ``bench_public.py SET --out RUN/NAME --json`` on it (the public and
 public-realism sets too, with ``--public``), keeps each JSON document as ``RUN/NAME.json`` and
 prints one line per set. ``compare`` prints, per set that differs, F1, changes found and false
-positives before and after, then the totals per role (tuning, held out).
+positives before and after, then the totals per role (tuning, held out). ``census`` runs
+``census.py SET RUN/NAME --counts RUN/NAME.census.json`` on each chosen set of a run (its
+lines in ``RUN/NAME.census.txt``) and prints the misses and the judged differences of all of
+them added up: where the changes of many sets were lost, in one table.
+
+A variant of the code is measured from a git worktree with a virtual environment of its own
+(``python3 -m venv .venv && .venv/bin/pip install -e '.[dev]'`` there, then that
+``.venv/bin/python benchmarks/run_sets.py run ...``): the main checkout's editable install
+comes before ``PYTHONPATH``, so pointing ``PYTHONPATH`` at the worktree runs the main code.
 """
 
 from __future__ import annotations
@@ -106,11 +115,7 @@ def run(args: argparse.Namespace) -> int:
     """Every chosen set; exit status 1 when any of them failed (each says why)."""
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    chosen = [
-        s
-        for s in read_sets(Path(args.sets), args.public)
-        if not args.only or any(word in s.name for word in args.only.split(","))
-    ]
+    chosen = _chosen(args)
     failed = 0
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         for done, line in pool.map(lambda s: _run_one(s, run_dir, args.config), chosen):
@@ -119,6 +124,60 @@ def run(args: argparse.Namespace) -> int:
     if failed:
         print(f"{failed} of {len(chosen)} sets failed", flush=True)
     return 1 if failed else 0
+
+
+def _census_one(
+    bench_set: BenchSet, run_dir: Path, config: str | None, every: bool
+) -> tuple[str, dict[str, list[list[object]]] | None]:
+    """``census.py`` on one set of a run: its line, and its counts (None when it failed)."""
+    counts_path = run_dir / f"{bench_set.name}.census.json"
+    counts_path.unlink(missing_ok=True)
+    outbox = run_dir / bench_set.name
+    if not outbox.is_dir():
+        return f"{bench_set.name:12s} FAILED: no run of it in {run_dir}", None
+    cmd = [sys.executable, str(HERE / "census.py"), str(bench_set.path), str(outbox)]
+    cmd += ["--counts", str(counts_path)] + (["--all"] if every else [])
+    if config:
+        cmd += ["--config", config]
+    text_path = run_dir / f"{bench_set.name}.census.txt"
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    text_path.write_text(done.stdout)
+    if done.returncode != 0:
+        return f"{bench_set.name:12s} FAILED: census.py: {_last_line(done.stderr)}", None
+    counts: dict[str, list[list[object]]] = json.loads(counts_path.read_text())
+    by_kind = {"added": 0, "removed": 0}
+    for kind, _stage, n in counts["misses"]:
+        by_kind[str(kind)] += int(str(n))
+    line = f"{bench_set.name:12s} misses: {by_kind['added']} added, {by_kind['removed']} removed"
+    return f"{line}  ({text_path})", counts
+
+
+def census(args: argparse.Namespace) -> int:
+    """The census of every chosen set of a run, and their counts added up; exit status 1 when
+    any of them failed."""
+    from census import Census, summary_lines  # the pipeline's observers: loaded only here
+
+    run_dir = Path(args.run_dir)
+    pooled, failed = Census(), 0
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        jobs = pool.map(lambda s: _census_one(s, run_dir, args.config, args.all), _chosen(args))
+        for line, counts in jobs:
+            print(line, flush=True)
+            if counts is None:
+                failed += 1
+            else:
+                pooled.add_doc(counts)
+    print("\n".join(summary_lines(pooled)))
+    return 1 if failed else 0
+
+
+def _chosen(args: argparse.Namespace) -> list[BenchSet]:
+    """The sets ``--only`` names (all of them without it)."""
+    return [
+        s
+        for s in read_sets(Path(args.sets), args.public)
+        if not args.only or any(word in s.name for word in args.only.split(","))
+    ]
 
 
 def _load(run_dir: Path) -> dict[str, dict[str, object]]:
@@ -181,8 +240,17 @@ def main() -> int:
     p_cmp = sub.add_parser("compare", help="per set and per role, two runs")
     p_cmp.add_argument("before")
     p_cmp.add_argument("after")
+    p_cen = sub.add_parser("census", help="census.py on each set of a run, and the counts pooled")
+    p_cen.add_argument("run_dir")
+    p_cen.add_argument("--sets", default="/tmp/mapserver-sets", help="where the sets live")
+    p_cen.add_argument("--only", help="comma-separated substrings of the set names")
+    p_cen.add_argument("--public", action="store_true", help="the two public sets too")
+    p_cen.add_argument("--config", help="the configuration the run used")
+    p_cen.add_argument("--all", action="store_true", help="every bundle and judged difference")
+    p_cen.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
-    return run(args) if args.command == "run" else compare(args)
+    commands = {"run": run, "compare": compare, "census": census}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

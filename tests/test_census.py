@@ -4,6 +4,7 @@ nothing changed, a real one taken out), and its verdicts against what the re-fit
 
 from __future__ import annotations
 
+import json
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -380,3 +381,46 @@ def test_the_fleets_own_comparison_is_not_recorded(
         assert not trace.kept and not trace.paused
         own = clusters()
     assert len(on_current) == len(own) == 1 and trace.kept == own
+
+
+def test_the_counts_written_as_json_add_up_over_sets_as_the_census_counts_them(
+    census: ModuleType,
+    edited: tuple[Path, Path, dict[str, Any], int],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--counts`` writes what the summary prints; two sets' documents added up count every
+    miss twice (what ``run_sets.py census`` pools)."""
+    set_dir, outbox, _, _ = edited
+    counts_path = tmp_path / "counts.json"
+    assert census.main([str(set_dir), str(outbox), "--counts", str(counts_path)]) == 0
+    capsys.readouterr()
+    doc = json.loads(counts_path.read_text())
+    assert ["added", "no difference", 1] in doc["misses"]
+    pooled = census.Census()
+    pooled.add_doc(doc)
+    pooled.add_doc(doc)
+    assert pooled.misses[("added", "no difference")] == 2
+    assert sum(pooled.misses.values()) == 2 * sum(n for *_, n in doc["misses"])
+    assert pooled.to_doc()["misses"] == [[*key, 2 * n] for *key, n in doc["misses"]]
+
+
+def test_run_sets_census_runs_the_census_on_each_set_and_pools_its_counts(
+    edited: tuple[Path, Path, dict[str, Any], int],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``run_sets.py census``'s own path for one set: census.py in a subprocess on the set and
+    the run's outbox of it, its lines kept beside the run and its counts returned."""
+    set_dir, outbox, _, fp_id = edited
+    run_dir = tmp_path / "run"
+    shutil.copytree(outbox, run_dir / "one")
+    with benchmark_module("run_sets") as rs:
+        line, counts = rs._census_one(
+            rs.BenchSet("one", "tuning", (), set_dir), run_dir, None, False
+        )
+    assert line == f"one          misses: 1 added, 0 removed  ({run_dir / 'one.census.txt'})"
+    assert counts == json.loads((run_dir / "one.census.json").read_text())
+    assert ["added", "no difference", 1] in counts["misses"]
+    text = (run_dir / "one.census.txt").read_text()
+    assert "MISS 99 added" in text and f"FP #{fp_id} added" in text

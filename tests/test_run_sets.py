@@ -89,3 +89,31 @@ def test_compare_says_which_sets_only_one_run_has(
     out = capsys.readouterr().out.splitlines()
     assert out[0] == f"two          only in {tmp_path / 'a'}: not compared"
     assert out[1] == "1 of 1 sets unchanged"
+
+
+def test_census_of_a_set_the_run_does_not_hold_fails_and_says_so(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A set with no outbox in the run: its line says FAILED and why, no counts of it are left
+    behind (an earlier census's would be pooled as this one's), and the exit status is 1."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "gen99.census.json").write_text('{"misses": [], "judged": []}')
+    args = type(
+        "Args",
+        (),
+        {
+            "run_dir": str(run_dir),
+            "sets": str(tmp_path / "sets"),
+            "only": "gen99",
+            "public": False,
+            "config": None,
+            "all": False,
+            "jobs": 1,
+        },
+    )
+    assert rs.census(args) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"gen99        FAILED: no run of it in {run_dir}"
+    assert out[1] == "== misses by the stage that lost them"
+    assert not (run_dir / "gen99.census.json").exists()
