@@ -14,8 +14,8 @@ in the repository and the commands in one place::
 public-realism sets too, with ``--public``), keeps each JSON document as ``RUN/NAME.json`` and
 prints one line per set. ``compare`` prints, per set that differs, F1, changes found and false
 positives before and after, then the totals per role (tuning, held out). ``census`` runs
-``census.py SET RUN/NAME --counts RUN/NAME.census.json`` on each chosen set of a run (its
-lines in ``RUN/NAME.census.txt``) and prints the misses and the judged differences of all of
+``census.py SET RUN/NAME --counts RUN/census/NAME.json`` on each chosen set of a run (its
+lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the misses and the judged differences of all of
 them added up: where the changes of many sets were lost, in one table.
 
 A variant of the code is measured from a git worktree with a virtual environment of its own
@@ -130,7 +130,9 @@ def _census_one(
     bench_set: BenchSet, run_dir: Path, config: str | None, every: bool
 ) -> tuple[str, dict[str, list[list[object]]] | None]:
     """``census.py`` on one set of a run: its line, and its counts (None when it failed)."""
-    counts_path = run_dir / f"{bench_set.name}.census.json"
+    out_dir = run_dir / "census"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    counts_path = out_dir / f"{bench_set.name}.json"
     counts_path.unlink(missing_ok=True)
     outbox = run_dir / bench_set.name
     if not outbox.is_dir():
@@ -139,7 +141,7 @@ def _census_one(
     cmd += ["--counts", str(counts_path)] + (["--all"] if every else [])
     if config:
         cmd += ["--config", config]
-    text_path = run_dir / f"{bench_set.name}.census.txt"
+    text_path = out_dir / f"{bench_set.name}.txt"
     done = subprocess.run(cmd, capture_output=True, text=True)
     text_path.write_text(done.stdout)
     if done.returncode != 0:

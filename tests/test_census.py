@@ -419,8 +419,10 @@ def test_run_sets_census_runs_the_census_on_each_set_and_pools_its_counts(
         line, counts = rs._census_one(
             rs.BenchSet("one", "tuning", (), set_dir), run_dir, None, False
         )
-    assert line == f"one          misses: 1 added, 0 removed  ({run_dir / 'one.census.txt'})"
-    assert counts == json.loads((run_dir / "one.census.json").read_text())
+    assert line == f"one          misses: 1 added, 0 removed  ({run_dir / 'census' / 'one.txt'})"
+    assert counts == json.loads((run_dir / "census" / "one.json").read_text())
     assert ["added", "no difference", 1] in counts["misses"]
-    text = (run_dir / "one.census.txt").read_text()
+    # Not among the run's documents: compare reads every JSON document there as a set's.
+    assert [p.name for p in run_dir.glob("*.json")] == []
+    text = (run_dir / "census" / "one.txt").read_text()
     assert "MISS 99 added" in text and f"FP #{fp_id} added" in text

@@ -98,7 +98,8 @@ def test_census_of_a_set_the_run_does_not_hold_fails_and_says_so(
     behind (an earlier census's would be pooled as this one's), and the exit status is 1."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
-    (run_dir / "gen99.census.json").write_text('{"misses": [], "judged": []}')
+    (run_dir / "census").mkdir()
+    (run_dir / "census" / "gen99.json").write_text('{"misses": [], "judged": []}')
     args = type(
         "Args",
         (),
@@ -116,4 +117,4 @@ def test_census_of_a_set_the_run_does_not_hold_fails_and_says_so(
     out = capsys.readouterr().out.splitlines()
     assert out[0] == f"gen99        FAILED: no run of it in {run_dir}"
     assert out[1] == "== misses by the stage that lost them"
-    assert not (run_dir / "gen99.census.json").exists()
+    assert not (run_dir / "census" / "gen99.json").exists()
