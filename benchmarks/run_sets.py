@@ -33,6 +33,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from mapserver.scoring import f1_from, precision_from_counts, recall_from_counts
 
@@ -128,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _census_one(
     bench_set: BenchSet, run_dir: Path, config: str | None, every: bool
-) -> tuple[str, dict[str, list[list[object]]] | None]:
+) -> tuple[str, dict[str, list[list[Any]]] | None]:
     """``census.py`` on one set of a run: its line, and its counts (None when it failed)."""
     out_dir = run_dir / "census"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -146,10 +147,10 @@ def _census_one(
     text_path.write_text(done.stdout)
     if done.returncode != 0:
         return f"{bench_set.name:12s} FAILED: census.py: {_last_line(done.stderr)}", None
-    counts: dict[str, list[list[object]]] = json.loads(counts_path.read_text())
+    counts: dict[str, list[list[Any]]] = json.loads(counts_path.read_text())
     by_kind = {"added": 0, "removed": 0}
     for kind, _stage, n in counts["misses"]:
-        by_kind[str(kind)] += int(str(n))
+        by_kind[kind] += n
     line = f"{bench_set.name:12s} misses: {by_kind['added']} added, {by_kind['removed']} removed"
     return f"{line}  ({text_path})", counts
 
@@ -232,24 +233,24 @@ def compare(args: argparse.Namespace) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    p_run = sub.add_parser("run", help="generate the missing sets and run bench_public on each")
-    p_run.add_argument("run_dir")
-    p_run.add_argument("--sets", default="/tmp/mapserver-sets", help="where the sets live")
-    p_run.add_argument("--only", help="comma-separated substrings of the set names")
-    p_run.add_argument("--public", action="store_true", help="the two public sets too")
-    p_run.add_argument("--config", help="mapserver configuration file")
-    p_run.add_argument("--jobs", type=int, default=2)
+    # What run and census share: a run's folder, the sets chosen in it and how.
+    on_sets = argparse.ArgumentParser(add_help=False)
+    on_sets.add_argument("run_dir")
+    on_sets.add_argument("--sets", default="/tmp/mapserver-sets", help="where the sets live")
+    on_sets.add_argument("--only", help="comma-separated substrings of the set names")
+    on_sets.add_argument("--public", action="store_true", help="the two public sets too")
+    on_sets.add_argument("--config", help="mapserver configuration file (the run's, for census)")
+    on_sets.add_argument("--jobs", type=int, default=2)
+    sub.add_parser(
+        "run", parents=[on_sets], help="generate the missing sets and run bench_public on each"
+    )
     p_cmp = sub.add_parser("compare", help="per set and per role, two runs")
     p_cmp.add_argument("before")
     p_cmp.add_argument("after")
-    p_cen = sub.add_parser("census", help="census.py on each set of a run, and the counts pooled")
-    p_cen.add_argument("run_dir")
-    p_cen.add_argument("--sets", default="/tmp/mapserver-sets", help="where the sets live")
-    p_cen.add_argument("--only", help="comma-separated substrings of the set names")
-    p_cen.add_argument("--public", action="store_true", help="the two public sets too")
-    p_cen.add_argument("--config", help="the configuration the run used")
+    p_cen = sub.add_parser(
+        "census", parents=[on_sets], help="census.py on each set of a run, and the counts pooled"
+    )
     p_cen.add_argument("--all", action="store_true", help="every bundle and judged difference")
-    p_cen.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
     commands = {"run": run, "compare": compare, "census": census}
     return commands[args.command](args)
