@@ -16,7 +16,7 @@ gets the stage that lost it:
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
   ``pipeline._refit`` asks them (``floor``, ``faces``, ``band``, ``refit``, ``pass``, ``left out``,
-  ``ghost``);
+  ``ghost``, ``through``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
@@ -107,6 +107,7 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),
     "left out": (piecewise, "left_out_pass_near", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
+    "through": (refit_stage, "line_through_wall", lambda value, _: bool(value)),
 }
 CHECKS = tuple(_CHECKS)
 # The checks given a difference's cells as nav2 points, and where among their arguments.

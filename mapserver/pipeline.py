@@ -878,8 +878,10 @@ def _refit(
     in pieces, for a removed one a long shallow band along a face walled inside by the local
     face (that face seen displaced, :func:`_face_displaced`), nor for a removed one a piece
     left out of the comparison whose run came near it (``_LEFT_OUT_NEAR_RATIO``: the
-    map there may be that pass's drawing). ``reach_m()``: how far from its route the robot saw
-    anything, asked when a fold check needs it."""
+    map there may be that pass's drawing), nor for an added one a straight local line that
+    runs on through a wall the local map shows standing (a wall drawn at a heading error,
+    :func:`mapserver.refit.line_through_wall`). ``reach_m()``: how far from its route the robot
+    saw anything, asked when a fold check needs it."""
     d = config.pipeline.diff
     view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
     global_walls = view.structure | (view.state == OCCUPIED)
@@ -943,11 +945,19 @@ def _refit(
                 local, aligned.pieces, xy, ratio=_LEFT_OUT_NEAR_RATIO, reach_m=sensor_reach_m()
             ):
                 return True
-        return diff.kind == "added" and refit_stage.ghost_of_wall(
+        if diff.kind == "added" and refit_stage.ghost_of_wall(
             diff.cells,
             added,
             global_walls,
             local_walls,
+            resolution=grid.resolution,
+            tolerance_m=d.tolerance_m,
+        ):
+            return True
+        return diff.kind == "added" and refit_stage.line_through_wall(
+            diff.cells,
+            local_walls,
+            global_walls,
             resolution=grid.resolution,
             tolerance_m=d.tolerance_m,
         )

@@ -18,7 +18,9 @@ inside a structure, bounded by local walls that were seen free on their far side
 faces of one solid wall drawn on one line; the pipeline asks most of them deep inside a solid,
 nearly all of them at any depth); :func:`band_in_structure` measures a fourth: a shallow band
 of free cells along a structure's face, walled inside by the local face (the face seen
-displaced into the structure).
+displaced into the structure). :func:`line_through_wall` catches a fold that no small move
+undoes: a wall drawn by a pass whose heading had drifted 10-20 degrees, laid as a straight line
+across the building and through a wall the local map shows standing, where no new wall can go.
 """
 
 from __future__ import annotations
@@ -518,3 +520,125 @@ def _turned(
 
 
 __all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall"]
+
+
+def line_through_wall(
+    cells: NDArray[np.intp],
+    local_walls: BoolArray,
+    global_walls: BoolArray,
+    *,
+    resolution: float,
+    tolerance_m: float,
+    reach_m: float = 3.0,
+    max_width_m: float = 0.1,
+    max_gap_m: float = 0.5,
+    min_beyond_m: float = 0.3,
+    min_across_m: float = 0.3,
+) -> bool:
+    """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a straight local
+    wall that runs through a global wall the local map shows standing: a wall drawn at a
+    heading error by a pass whose drift the alignment did not undo, laid across the building.
+
+    The local line: the local wall cells within ``max_width_m`` of the line the difference
+    runs along (:func:`_line_of` among the local walls within ``reach_m`` of it), those joined
+    to the difference along it by gaps of at most ``max_gap_m``. It runs through a wall when,
+    at some place along it, global walls lie under it that reach ``min_across_m`` or more away
+    from it on one side or the other (a wall across it, not the stretch of one it lies along),
+    the local map has that wall's cells standing there off the line, and on both sides of
+    that place the line runs ``min_beyond_m`` or more off every global wall (beyond
+    ``tolerance_m``) within ``reach_m`` of it.
+
+    A new wall ends at the walls it meets; one copied across the building by a pass whose
+    heading drifted goes on through them, as no wall in the building can.
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    box = _window(rows, cols, 2 * reach_m, resolution, global_walls.shape)
+    r0, c0 = box[0].start, box[1].start
+    g, lw = global_walls[box], local_walls[box]
+    k = math.ceil(reach_m / resolution)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2)
+    pr, pc = nonzero_cells(lw & _around(rows, cols, box, disc))
+    if len(pr) < 3:
+        return False
+    own = np.stack([rows - r0, cols - c0], axis=1).astype(float)
+    pts = np.stack([pr, pc], axis=1).astype(float)
+    centre, axis = _line_of(
+        own, pts, resolution=resolution, min_length_m=1.5, max_width_m=2 * max_width_m
+    )
+    normal = _across(axis)
+    width_px, gap_px = max_width_m / resolution, max_gap_m / resolution
+    # The local line, as far along it as it runs without a gap wider than max_gap_m from the
+    # difference's own span, within 2 * reach_m of the difference.
+    lr, lc = nonzero_cells(lw)
+    line_pts = np.stack([lr, lc], axis=1).astype(float)
+    on = np.abs((line_pts - centre) @ normal) <= width_px
+    t = np.sort((line_pts[on] - centre) @ axis)
+    own_t = (own - centre) @ axis
+    lo, hi = float(own_t.min()), float(own_t.max())
+    if len(t) == 0:
+        return False
+    for v in t[t < lo][::-1]:
+        if lo - v > gap_px:
+            break
+        lo = float(v)
+    for v in t[t > hi]:
+        if v - hi > gap_px:
+            break
+        hi = float(v)
+    # Along the line, a cell's step apart: where it lies off every global wall (beyond the
+    # tolerance), and where a global wall across it lies under it, standing in the local map.
+    steps = np.arange(math.floor(lo), math.ceil(hi) + 1, 1.0)
+    if len(steps) < 3:
+        return False
+    along = centre + steps[:, None] * axis
+    h, w = g.shape
+    tol_px = tolerance_m / resolution
+    far = distance_to(g) > tol_px
+    drawn = near(lw, ~(offset_distances(width_px) > width_px))
+
+    def at(mask: BoolArray, points: NDArray[np.float64]) -> BoolArray:
+        r = np.rint(points[:, 0]).astype(np.intp)
+        c = np.rint(points[:, 1]).astype(np.intp)
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        out = np.zeros(len(points), bool)
+        out[inside] = mask[r[inside], c[inside]]
+        return out
+
+    off_walls = at(far, along) & at(drawn, along)
+    across_px = min_across_m / resolution
+    beyond = max(1, math.ceil(min_beyond_m / resolution))
+    gr, gc = nonzero_cells(g)
+    g_pts = np.stack([gr, gc], axis=1).astype(float)
+    near_g = near(g, ~(offset_distances(tol_px) > tol_px))
+    lw_pts = line_pts[~on]
+    lw_pts = lw_pts[at(near_g, lw_pts)]
+    radius = across_px + 2.0
+    for i in np.nonzero(at(g, along))[0]:
+        p = along[i]
+        before = int(np.count_nonzero(off_walls[max(0, i - 2 * k) : i]))
+        after = int(np.count_nonzero(off_walls[i + 1 : i + 1 + 2 * k]))
+        if before < beyond or after < beyond:
+            continue
+        # A wall across the line: global wall cells near p reaching across_px off the line,
+        # and local wall cells on them, off the line, there: that wall stands.
+        if _reaches_off(g_pts, p, normal, radius, across_px) and _reaches_off(
+            lw_pts, p, normal, radius, 2 * width_px
+        ):
+            return True
+    return False
+
+
+def _reaches_off(
+    points: NDArray[np.float64],
+    p: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    radius: float,
+    off: float,
+) -> bool:
+    """Whether one of ``points`` ((N, 2), cells) within ``radius`` of ``p`` lies ``off`` or
+    more across the line through ``p`` square to ``normal``."""
+    if len(points) == 0:
+        return False
+    d = points - p
+    inside = (d**2).sum(axis=1) <= radius**2
+    return bool(np.any(np.abs(d[inside] @ normal) >= off))

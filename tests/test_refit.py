@@ -20,6 +20,7 @@ from mapserver.refit import (
     faces_seen_from_behind,
     floor_seen_share,
     ghost_of_wall,
+    line_through_wall,
     spread_across_m,
 )
 
@@ -866,3 +867,65 @@ def test_open_is_read_in_a_crop_as_over_the_whole_map() -> None:
     for chunk in np.array_split(np.arange(len(xy)), 40):
         got = pipeline._open_in(local, xy[chunk], wall_m=0.15)
         assert np.array_equal(got, expected[chunk])
+
+
+def _rooms() -> tuple[np.ndarray, np.ndarray]:
+    """Two rooms side by side, 1 px walls, split by a wall at column 100 (a 10 m x 6 m grid
+    at 0.05 m), every wall seen in place by the local map."""
+    glob = np.zeros((120, 200), bool)
+    glob[10, 10:190] = glob[110, 10:190] = True
+    glob[10:111, 10] = glob[10:111, 190] = glob[10:111, 100] = True
+    return glob, glob.copy()
+
+
+def _drawn_line(
+    shape: tuple[int, int], start: tuple[float, float], deg: float, n: int
+) -> np.ndarray:
+    """Cells of a straight line from ``start`` (row, col), ``deg`` from the column axis, ``n``
+    cells long."""
+    line = np.zeros(shape, bool)
+    t = np.arange(n)
+    rows = np.rint(start[0] - t * math.sin(math.radians(deg))).astype(int)
+    cols = np.rint(start[1] + t * math.cos(math.radians(deg))).astype(int)
+    line[rows, cols] = True
+    return line
+
+
+def test_a_wall_drawn_turned_through_a_wall_standing_is_a_heading_error() -> None:
+    """A pass whose heading drifted 15 degrees drew a wall across both rooms, through the wall
+    between them, which the local map shows standing: no new wall goes through a wall."""
+    glob, local = _rooms()
+    copy = _drawn_line(glob.shape, (90, 40), 15.0, 120)
+    local |= copy
+    piece = copy & (np.arange(200) < 80)  # the part in the first room, judged
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert line_through_wall(cells(piece), local, glob, **kw)
+    # The same line, where the local map does not show the wall between them standing (a
+    # wall really gone there, or never seen): nothing says the line is not new.
+    local[:, 98:103] = False
+    local |= copy
+    assert not line_through_wall(cells(piece), local, glob, **kw)
+
+
+def test_a_new_wall_that_ends_at_the_walls_it_meets_is_not_a_heading_error() -> None:
+    """A new partition across the first room, from its bottom wall up to the wall between the
+    rooms, 15 degrees turned: it ends there."""
+    glob, local = _rooms()
+    new = _drawn_line(glob.shape, (105, 40), 15.0, 62)
+    assert new[:, 100:].sum() == 0  # it stops at the wall
+    local |= new
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert not line_through_wall(cells(new), local, glob, **kw)
+
+
+def test_a_new_wall_along_a_wall_stub_between_two_gaps_is_not_a_heading_error() -> None:
+    """Two doorways either side of a wall's pier closed by one new wall along the wall's
+    line: the pier lies under the line, but along it, not across it."""
+    glob = np.zeros((80, 200), bool)
+    glob[40, 10:60] = glob[40, 90:110] = glob[40, 140:190] = True
+    local = glob.copy()
+    new = np.zeros(glob.shape, bool)
+    new[40, 60:90] = new[40, 110:140] = True
+    local |= new
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    assert not line_through_wall(cells(new & (np.arange(200) < 100)), local, glob, **kw)
