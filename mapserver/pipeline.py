@@ -886,6 +886,7 @@ def _refit(
     view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
     global_walls = view.structure | (view.state == OCCUPIED)
     local_walls = local_state == OCCUPIED
+    local_free = local_state == FREE
 
     def near_wall(xy: np.ndarray, distance_m: float) -> np.ndarray:
         """Per nav2 point of ``xy`` (N, 2): within ``distance_m`` of a global wall, rounded to
@@ -952,6 +953,7 @@ def _refit(
             local_walls,
             resolution=grid.resolution,
             tolerance_m=d.tolerance_m,
+            local_free=local_free,
         ):
             return True
         return diff.kind == "added" and refit_stage.line_through_wall(

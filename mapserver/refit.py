@@ -160,8 +160,10 @@ def ghost_of_wall(
     reach_m: float = 1.5,
     shift_m: float = 0.8,
     turn_deg: float = 3.0,
-    min_length_m: float = 1.5,
+    min_length_m: float = 0.6,
     max_width_m: float = 0.2,
+    local_free: BoolArray | None = None,
+    min_between_free: float = 0.5,
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
     second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool) that
@@ -169,15 +171,19 @@ def ghost_of_wall(
     that one move across itself of at most ``shift_m`` (and a turn of at most ``turn_deg``)
     lays, 80 % of it and 80 % of the difference, within ``tolerance_m`` of a global wall the
     local map also shows in place; the difference itself no wider across that line than
-    ``max_width_m`` (its cells' 5-95 % spread).
+    ``max_width_m`` (its cells' 5-95 % spread); and, with ``local_free`` ((H, W) bool: the local
+    map's cells seen free), the floor between the line and where that move lays it seen free
+    (``min_between_free`` of it).
 
     The line it runs along: :func:`_line_of` (its own main axis, or for a compact piece the
     line through it that holds the most added cells).
 
     The walls around a revisit's second copy fit where they are (the first copy lies on the
     global wall), so :func:`explained_by_refit` keeps it; the copy itself fits once moved. A
-    new obstacle in open space is no such line, and one placed beside a wall is shorter than a
-    stretch of wall seen twice.
+    new obstacle in open space is no such line. A new wall in front of an old one hides the floor
+    between them, unseen; a copy leaves it seen, as the robot looked through it at the wall
+    (session 38: with that, the line's floor went from 1.5 to 0.6 m: a box's face seen twice is
+    a stretch of wall seen twice, short as it is).
     """
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
@@ -231,14 +237,35 @@ def ghost_of_wall(
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         return np.asarray(near_target[ir, ic].mean(axis=1))
 
+    free = None if local_free is None else local_free[box]
+
+    def seen_between(ct: float, st: float, shift: int) -> bool:
+        """Whether the local map saw the floor between the line and where the move lays it
+        free (``min_between_free`` of the points a quarter, half and three quarters of the
+        way): the first copy was seen through there. A new wall in front of an old one hides
+        the strip between them."""
+        if free is None:
+            return True
+        qr, qc = _turned(
+            pr.astype(float), pc.astype(float), (float(centre[0]), float(centre[1])), ct, st
+        )
+        qr, qc = qr + float(dy[shift, 0]), qc + float(dx[shift, 0])
+        seen = []
+        for f in (0.25, 0.5, 0.75):
+            ir = np.clip(np.rint(pr + f * (qr - pr)), 0, g.shape[0] - 1).astype(np.intp)
+            ic = np.clip(np.rint(pc + f * (qc - pc)), 0, g.shape[1] - 1).astype(np.intp)
+            seen.append(free[ir, ic])
+        return float(np.mean(seen)) >= min_between_free
+
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
         ct, st = math.cos(turn), math.sin(turn)
         # The line and the difference itself, by the same move (a box beside a wall seen
         # twice is near the line, not on it).
         line = landed(pr.astype(float), pc.astype(float), ct, st)
         own = landed(own_pts[:, 0], own_pts[:, 1], ct, st)
-        if ((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE)).any():
-            return True
+        for shift in np.nonzero((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE))[0]:
+            if seen_between(ct, st, int(shift)):
+                return True
     return False
 
 

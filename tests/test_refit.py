@@ -126,14 +126,15 @@ def _corridor() -> tuple[np.ndarray, np.ndarray]:
     return glob, glob.copy()
 
 
-@pytest.mark.parametrize("off_px", [7, 15])
-def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost(off_px: int) -> None:
+@pytest.mark.parametrize(("off_px", "turn_deg"), [(7, 1.0), (15, 1.0), (15, 2.5)])
+def test_a_wall_drawn_a_second_time_beside_itself_is_a_ghost(off_px: int, turn_deg: float) -> None:
     glob, local = _corridor()
-    # A revisit drew 3 m of the wall again 0.35 or 0.75 m off, as sparse hits, 1 degree turned.
+    # A revisit drew 3 m of the wall again 0.35 or 0.75 m off, as sparse hits, 1 or 2.5 degrees
+    # turned.
     cols = np.arange(40, 100, 2)
     ghost = np.zeros(glob.shape, bool)
-    turned = np.rint((cols - 40) * math.tan(math.radians(1.0))).astype(int)
-    assert turned.max() == 1  # really turned: one row over its 3 m
+    turned = np.rint((cols - 40) * math.tan(math.radians(turn_deg))).astype(int)
+    assert turned.max() >= 1  # really turned: a row or more over its 3 m
     ghost[40 + off_px + turned, cols] = True
     local |= ghost
     piece = ghost.copy()
@@ -929,3 +930,22 @@ def test_a_new_wall_along_a_wall_stub_between_two_gaps_is_not_a_heading_error() 
     local |= new
     kw = {"resolution": RES, "tolerance_m": 0.15}
     assert not line_through_wall(cells(new & (np.arange(200) < 100)), local, glob, **kw)
+
+
+@pytest.mark.parametrize("between", [UNKNOWN, FREE])
+def test_a_line_beside_a_wall_is_a_ghost_only_where_the_floor_between_them_was_seen(
+    between: int,
+) -> None:
+    """A 0.8 m line 0.35 m in front of the wall, the wall seen in place everywhere: where the strip
+    between them is unknown the line hid it (a new wall in front of an old one, the old one
+    seen past its ends and on a revisit); where the strip was seen free, the robot looked
+    through it at the wall: the line is that wall drawn again."""
+    glob, walls = _corridor()
+    new = np.zeros(glob.shape, bool)
+    new[47, 40:56] = True
+    walls |= new
+    state = np.full(glob.shape, FREE, np.uint8)
+    state[walls] = OCCUPIED
+    state[41:47, 40:56] = between
+    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE}
+    assert ghost_of_wall(cells(new), new, glob, walls, **kw) == (between == FREE)
