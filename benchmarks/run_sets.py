@@ -13,7 +13,8 @@ in the repository and the commands in one place::
 ``make_scenarios.py``, runs ``bench_public.py SET --out RUN/NAME --json`` on it (the public and
 public-realism sets too, with ``--public``), keeps each JSON document as ``RUN/NAME.json`` and
 prints one line per set. ``compare`` prints, per set that differs, F1, changes found and false
-positives before and after, then the totals per role (tuning, held out). ``census`` runs
+positives before and after, then the totals per role (tuning, held out) and per kind of set
+(its ``--cases``, and whether it overrides the sensor: :func:`kind_of`). ``census`` runs
 ``census.py SET RUN/NAME --counts RUN/census/NAME.json`` on each chosen set of a run (its
 lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the misses and the judged differences of all of
 them added up: where the changes of many sets were lost, in one table.
@@ -216,18 +217,33 @@ def compare(args: argparse.Namespace) -> int:
             f"  FP {b['false_positive']} -> {a['false_positive']}"
         )
     print(f"{same} of {len(common)} sets unchanged")
+    groups: dict[str, list[str]] = {}
     for role in ("public", "tuning", "held"):
-        names = [n for n in common if after[n].get("role") == role]
+        groups[role] = [n for n in common if after[n].get("role") == role]
+    # Then per kind of set (issue 12's targets are per kind), tuning and held out together.
+    kinds = {s.name: kind_of(s.args) for s in read_sets(Path(), public=False)}
+    for name in common:
+        if name in kinds:
+            groups.setdefault(kinds[name], []).append(name)
+    for label, names in groups.items():
         if not names:
             continue
         tb = _sum([before[n] for n in names])
         ta = _sum([after[n] for n in names])
         print(
-            f"{role:7s} {len(names):2d} sets: F1 {tb['f1']:.4f} -> {ta['f1']:.4f}"
+            f"{label:7s} {len(names):2d} sets: F1 {tb['f1']:.4f} -> {ta['f1']:.4f}"
             f"  found {tb['matched']:.0f} -> {ta['matched']:.0f} / {ta['observed']:.0f}"
             f"  FP {tb['false_positive']:.0f} -> {ta['false_positive']:.0f}"
         )
     return 0
+
+
+def kind_of(args: tuple[str, ...]) -> str:
+    """The kind of a generated set, from its ``make_scenarios.py`` arguments: the cases it
+    asks for (``every case`` without ``--cases``), and whether it changes the simulated
+    sensor (``--override``)."""
+    cases = args[args.index("--cases") + 1] if "--cases" in args else "every case"
+    return f"{cases}, other sensors" if "--override" in args else cases
 
 
 def main() -> int:

@@ -67,6 +67,32 @@ def test_compare_names_the_sets_that_moved_and_sums_each_role(
     )
 
 
+def test_compare_sums_each_kind_of_set_too(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The sets of sets.tsv are summed per kind as well: drift123 and drift9191 (one tuning,
+    one held out) as ``drifting,long,combo``, s20_1303 apart from them (another sensor)."""
+    runs = {"drift123": (8, 10, 9, 1), "drift9191": (5, 5, 5, 0), "s20_1303": (1, 2, 1, 1)}
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        for set_name, (matched, observed, correct, fp) in runs.items():
+            total = {"matched": matched, "observed": observed, "correct": correct}
+            total |= {"false_positive": fp, "f1": 0.0}
+            doc = {"total": total, "role": "held" if set_name == "drift9191" else "tuning"}
+            (tmp_path / name / f"{set_name}.json").write_text(json.dumps(doc))
+    args = type("Args", (), {"before": str(tmp_path / "a"), "after": str(tmp_path / "b")})
+    rs.compare(args)
+    out = capsys.readouterr().out.splitlines()
+    # P 14/15, R 13/15 for the two drift sets.
+    f1 = 2 * (14 / 15) * (13 / 15) / (14 / 15 + 13 / 15)
+    assert (
+        f"drifting,long,combo  2 sets: F1 {f1:.4f} -> {f1:.4f}  found 13 -> 13 / 15"
+        in "\n".join(out)
+    )
+    assert any(line.startswith("drifting,long,combo, other sensors  1 sets:") for line in out)
+    assert rs.kind_of(("--count", "30", "--seed", "99")) == "every case"
+
+
 def test_a_set_that_fails_leaves_no_numbers_behind(rs: ModuleType, tmp_path: Path) -> None:
     """A stored set that is not there: its line says FAILED and why, and the run's earlier JSON
     document of it is gone (compare would read it as this run's)."""
