@@ -892,20 +892,62 @@ def _drawn_line(
     return line
 
 
-def test_a_wall_drawn_turned_through_a_wall_standing_is_a_heading_error() -> None:
+@pytest.mark.parametrize("judged", ["first room", "second room"])
+@pytest.mark.parametrize("pad", [0, 37])
+def test_a_wall_drawn_turned_through_a_wall_standing_is_a_heading_error(
+    judged: str, pad: int
+) -> None:
     """A pass whose heading drifted 15 degrees drew a wall across both rooms, through the wall
-    between them, which the local map shows standing: no new wall goes through a wall."""
+    between them, which the local map shows standing: no new wall goes through a wall. Either
+    part judged, the rooms anywhere on a larger map."""
     glob, local = _rooms()
     copy = _drawn_line(glob.shape, (90, 40), 15.0, 120)
+    glob, local, copy = (np.pad(m, ((pad, pad + 11), (pad + 5, pad))) for m in (glob, local, copy))
     local |= copy
-    piece = copy & (np.arange(200) < 80)  # the part in the first room, judged
+    cols = np.arange(copy.shape[1]) - pad - 5
+    piece = copy & ((cols < 80) if judged == "first room" else (cols > 120))
     kw = {"resolution": RES, "tolerance_m": 0.15}
     assert line_through_wall(cells(piece), local, glob, **kw)
     # The same line, where the local map does not show the wall between them standing (a
     # wall really gone there, or never seen): nothing says the line is not new.
-    local[:, 98:103] = False
+    local[:, (cols >= 98) & (cols < 103)] = False
     local |= copy
     assert not line_through_wall(cells(piece), local, glob, **kw)
+
+
+def test_a_new_wall_across_the_free_end_of_a_wall_is_not_a_heading_error() -> None:
+    """A partition that ends in the open, and a new wall built across its end (a T): the
+    partition lies on one side of the new wall only, so the new wall does not run through it."""
+    glob = np.zeros((120, 200), bool)
+    glob[60:110, 100] = True  # the partition, its free end at row 60
+    local = glob.copy()
+    new = np.zeros(glob.shape, bool)
+    new[60, 20:180] = True
+    local |= new
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    for judged in (new & (np.arange(200) < 90), new & (np.arange(200) > 110)):
+        assert not line_through_wall(cells(judged), local, glob, **kw)
+    # Carried on through it, the partition on both sides: a copy through a wall.
+    glob[10:60, 100] = True
+    local[10:60, 100] = True
+    assert line_through_wall(cells(new & (np.arange(200) < 90)), local, glob, **kw)
+
+
+def test_a_line_through_a_wall_is_one_line_only_across_short_gaps() -> None:
+    """A new wall that ends at the wall between the rooms, and in line with it, 0.6 m past
+    that wall, a cabinet's face: the gap between them is too wide for one line. At 0.4 m it
+    is one line through the wall."""
+    glob, local = _rooms()
+    new = np.zeros(glob.shape, bool)
+    new[60, 30:100] = True
+    local |= new
+    kw = {"resolution": RES, "tolerance_m": 0.15}
+    face = np.zeros(glob.shape, bool)
+    face[60, 112:150] = True  # 0.6 m of gap from the wall's column (100) to the face
+    assert not line_through_wall(cells(new), local | face, glob, **kw)
+    face = np.zeros(glob.shape, bool)
+    face[60, 108:150] = True
+    assert line_through_wall(cells(new), local | face, glob, **kw)
 
 
 def test_a_new_wall_that_ends_at_the_walls_it_meets_is_not_a_heading_error() -> None:
@@ -947,5 +989,5 @@ def test_a_line_beside_a_wall_is_a_ghost_only_where_the_floor_between_them_was_s
     state = np.full(glob.shape, FREE, np.uint8)
     state[walls] = OCCUPIED
     state[41:47, 40:56] = between
-    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE}
+    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
     assert ghost_of_wall(cells(new), new, glob, walls, **kw) == (between == FREE)
