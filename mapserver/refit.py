@@ -240,22 +240,22 @@ def ghost_of_wall(
     free = None if local_free is None else local_free[box]
 
     def seen_between(ct: float, st: float, shift: int) -> bool:
-        """Whether the local map saw the floor between the line and where the move lays it
-        free (``min_between_free`` of the points a quarter, half and three quarters of the
-        way): the first copy was seen through there. A new wall in front of an old one hides
-        the strip between them."""
+        """Whether the local map saw the floor between the difference and where the move lays
+        it free (``min_between_free`` of the cells a whole cell apart on the way from each of
+        its cells to where it lands, neither end counted): the first copy was seen through
+        there. A new wall in front of an old one hides the strip between them."""
         if free is None:
             return True
-        qr, qc = _turned(
-            pr.astype(float), pc.astype(float), (float(centre[0]), float(centre[1])), ct, st
-        )
+        r, c = own_pts[:, 0], own_pts[:, 1]
+        qr, qc = _turned(r, c, (float(centre[0]), float(centre[1])), ct, st)
         qr, qc = qr + float(dy[shift, 0]), qc + float(dx[shift, 0])
-        seen = []
-        for f in (0.25, 0.5, 0.75):
-            ir = np.clip(np.rint(pr + f * (qr - pr)), 0, g.shape[0] - 1).astype(np.intp)
-            ic = np.clip(np.rint(pc + f * (qc - pc)), 0, g.shape[1] - 1).astype(np.intp)
-            seen.append(free[ir, ic])
-        return float(np.mean(seen)) >= min_between_free
+        n = int(np.ceil(np.hypot(qr - r, qc - c).max()))
+        if n < 2:
+            return True  # no cell between them
+        f = np.arange(1, n)[:, None] / n
+        ir = np.clip(np.rint(r + f * (qr - r)), 0, g.shape[0] - 1).astype(np.intp)
+        ic = np.clip(np.rint(c + f * (qc - c)), 0, g.shape[1] - 1).astype(np.intp)
+        return float(free[ir, ic].mean()) >= min_between_free
 
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
         ct, st = math.cos(turn), math.sin(turn)

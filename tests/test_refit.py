@@ -991,3 +991,20 @@ def test_a_line_beside_a_wall_is_a_ghost_only_where_the_floor_between_them_was_s
     state[41:47, 40:56] = between
     kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
     assert ghost_of_wall(cells(new), new, glob, walls, **kw) == (between == FREE)
+
+
+def test_the_floor_asked_seen_free_is_the_one_behind_the_difference_itself() -> None:
+    """A 4 m line 0.35 m in front of the wall: the floor between them seen free behind its
+    first half (a copy there), unknown behind its second (a new wall hides it). The half that
+    hides its floor is no ghost, whatever the other half lets the robot see."""
+    glob, walls = _corridor()
+    line = np.zeros(glob.shape, bool)
+    line[47, 20:100] = True
+    walls |= line
+    state = np.full(glob.shape, FREE, np.uint8)
+    state[walls] = OCCUPIED
+    state[41:47, 60:100] = UNKNOWN
+    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
+    first, second = line & (np.arange(160) < 60), line & (np.arange(160) >= 60)
+    assert ghost_of_wall(cells(first), line, glob, walls, **kw)
+    assert not ghost_of_wall(cells(second), line, glob, walls, **kw)
