@@ -546,7 +546,13 @@ def _turned(
     return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
-__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall"]
+__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall", "line_through_wall"]
+
+
+# The length at which line_through_wall takes a difference's own main axis for its line (a
+# shorter, compact one: the line through it holding the most local walls), as ghost_of_wall
+# does by default.
+_LINE_LENGTH_M = 1.5
 
 
 def line_through_wall(
@@ -595,8 +601,9 @@ def line_through_wall(
         return False
     own = np.stack([rows - r0, cols - c0], axis=1).astype(float)
     pts = np.stack([pr, pc], axis=1).astype(float)
+    # The line it runs along, as ghost_of_wall finds it (its own axis when it is a long line).
     centre, axis = _line_of(
-        own, pts, resolution=resolution, min_length_m=1.5, max_width_m=2 * max_width_m
+        own, pts, resolution=resolution, min_length_m=_LINE_LENGTH_M, max_width_m=2 * max_width_m
     )
     normal = _across(axis)
     width_px, gap_px = max_width_m / resolution, max_gap_m / resolution
