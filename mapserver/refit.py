@@ -163,7 +163,7 @@ def ghost_of_wall(
     min_length_m: float = 1.5,
     max_width_m: float = 0.2,
     local_free: BoolArray | None = None,
-    min_between_free: float = 0.5,
+    min_between_free: float = 0.7,
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
     second time: with the added cells within ``reach_m`` of it (``added``, (H, W) bool) that
@@ -173,7 +173,8 @@ def ghost_of_wall(
     local map also shows in place; the difference itself no wider across that line than
     ``max_width_m`` (its cells' 5-95 % spread); and, with ``local_free`` ((H, W) bool: the local
     map's cells seen free), the floor between the line and where that move lays it seen free
-    (``min_between_free`` of it).
+    (``min_between_free`` of it: session 38, over 57 generated sets, half of it found 4
+    held-out changes fewer than 70 %, 90 % let 11 false positives of the tuning sets back in).
 
     The line it runs along: :func:`_line_of` (its own main axis, or for a compact piece the
     line through it that holds the most added cells).
