@@ -228,27 +228,26 @@ def ghost_of_wall(
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = (normal[0] * steps)[:, None], (normal[1] * steps)[:, None]
 
-    def landed(
-        r: NDArray[np.float64], c: NDArray[np.float64], ct: float, st: float
-    ) -> NDArray[np.float64]:
-        """The share of the points (r, c) on a wall seen in place, for each move (turn, then
-        each shift across the line)."""
-        qr, qc = _turned(r, c, (float(centre[0]), float(centre[1])), ct, st)
+    pivot = (float(centre[0]), float(centre[1]))
+
+    def landed(qr: NDArray[np.float64], qc: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The share of the turned points (qr, qc) on a wall seen in place, for each shift
+        across the line."""
         ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         return np.asarray(near_target[ir, ic].mean(axis=1))
 
     free = None if local_free is None else local_free[box]
+    r, c = own_pts[:, 0], own_pts[:, 1]
 
-    def seen_between(ct: float, st: float, shift: int) -> bool:
-        """Whether the local map saw the floor between the difference and where the move lays
-        it free (``min_between_free`` of the cells a whole cell apart on the way from each of
-        its cells to where it lands, neither end counted): the first copy was seen through
-        there. A new wall in front of an old one hides the strip between them."""
+    def seen_between(qr: NDArray[np.float64], qc: NDArray[np.float64], shift: int) -> bool:
+        """Whether the local map saw the floor between the difference and where the move (its
+        turned points ``qr``, ``qc``, then ``shift``) lays it free (``min_between_free`` of
+        the cells a whole cell apart on the way from each of its cells to where it lands,
+        neither end counted): the first copy was seen through there. A new wall in front of
+        an old one hides the strip between them."""
         if free is None:
             return True
-        r, c = own_pts[:, 0], own_pts[:, 1]
-        qr, qc = _turned(r, c, (float(centre[0]), float(centre[1])), ct, st)
         qr, qc = qr + float(dy[shift, 0]), qc + float(dx[shift, 0])
         n = int(np.ceil(np.hypot(qr - r, qc - c).max()))
         if n < 2:
@@ -262,10 +261,11 @@ def ghost_of_wall(
         ct, st = math.cos(turn), math.sin(turn)
         # The line and the difference itself, by the same move (a box beside a wall seen
         # twice is near the line, not on it).
-        line = landed(pr.astype(float), pc.astype(float), ct, st)
-        own = landed(own_pts[:, 0], own_pts[:, 1], ct, st)
+        line = landed(*_turned(pr.astype(float), pc.astype(float), pivot, ct, st))
+        own_q = _turned(r, c, pivot, ct, st)
+        own = landed(*own_q)
         for shift in np.nonzero((line >= _EXPLAINED_SHARE) & (own >= _EXPLAINED_SHARE))[0]:
-            if seen_between(ct, st, int(shift)):
+            if seen_between(*own_q, int(shift)):
                 return True
     return False
 
@@ -547,9 +547,6 @@ def _turned(
     return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
-__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall", "line_through_wall"]
-
-
 # The length at which line_through_wall takes a difference's own main axis for its line (a
 # shorter, compact one: the line through it holding the most local walls), as ghost_of_wall
 # does by default.
@@ -689,3 +686,6 @@ def _on_both_sides(
     if not both:
         return bool(np.any(np.abs(across) >= off))
     return bool(np.any(across >= off) and np.any(across <= -off))
+
+
+__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall", "line_through_wall"]
