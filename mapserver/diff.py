@@ -84,6 +84,13 @@ def near(mask: BoolArray, offsets: BoolArray) -> BoolArray:
     return grown > 0
 
 
+def within(mask: BoolArray, reach_px: float) -> BoolArray:
+    """Cells within ``reach_px`` of a True cell of ``mask``: :func:`near` by the offsets of
+    :func:`offset_distances` up to ``reach_px`` (``distance_to(mask) <= reach_px`` cell for
+    cell, by a dilation). Returns a new (H, W) bool array."""
+    return near(mask, ~(offset_distances(reach_px) > reach_px))
+
+
 def near_at(
     mask: BoolArray, offsets: BoolArray, grid: Grid, points_xy: NDArray[np.float64]
 ) -> BoolArray:
@@ -175,7 +182,7 @@ def raw_differences(
     # cells, a fraction of the cost).
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
-        added &= ~near(g_walls, ~(offset_distances(tol_px) > tol_px))
+        added &= ~within(g_walls, tol_px)
         if extra_tolerance_m is not None:
             _keep_far(added, g_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
@@ -186,13 +193,13 @@ def raw_differences(
         # inside the drawn structure than that is a new face (a notch cut into a block), and
         # the cells between it and the open space are what was cut away.
         faces = l_occ & _near_face(g_occ, removed_tol_m, extra_tolerance_m, box, resolution)
-        removed &= ~near(faces, ~(offset_distances(removed_tol_px) > removed_tol_px))
+        removed &= ~within(faces, removed_tol_px)
         if extra_tolerance_m is not None:
             _keep_far(removed, faces, removed_tol_m + extra_tolerance_m[box], resolution)
         # The removed tolerance is for a wall seen off to one side of where it was drawn. Past
         # the end of a local wall, in line with it (a gap in a wall), a smaller one will do.
         end_px = (removed_tol_m if end_tolerance_m is None else end_tolerance_m) / resolution
-        ends = seen & ~removed & ~near(l_occ, ~(offset_distances(end_px) > end_px))
+        ends = seen & ~removed & ~within(l_occ, end_px)
         if extra_tolerance_m is not None:  # only where the walls fit: no drift left there
             ends &= extra_tolerance_m[box] == 0
         if ends.any():

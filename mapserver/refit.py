@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.diff import distance_to, near, offset_distances
+from mapserver.diff import distance_to, within
 from mapserver.grid import any_along, box_of_cells, nonzero_cells
 from mapserver.maps import FREE, OCCUPIED
 
@@ -189,13 +189,11 @@ def ghost_of_wall(
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
     r0, c0 = box[0].start, box[1].start
+    # Within the tolerance of a mask: a dilation (diff.within), not a distance transform.
     tol_px = tolerance_m / resolution
-    # Within the tolerance of a mask: a dilation by these offsets (diff.near), not a distance
-    # transform.
-    within = ~(offset_distances(tol_px) > tol_px)
     # Global walls the local map shows in place too: the first copy of the wall.
     g = global_walls[box]
-    target = g & near(local_walls[box], within)
+    target = g & within(local_walls[box], tol_px)
     if not target.any():
         return False
     k = math.ceil(reach_m / resolution)
@@ -223,7 +221,7 @@ def ghost_of_wall(
     lo, hi = np.percentile(across, [5, 95])
     if float(hi - lo) * resolution > max_width_m:
         return False
-    near_target = near(target, within)
+    near_target = within(target, tol_px)
     # Moves across the line only: slid along itself, any line lands on any wall it continues.
     steps = np.arange(-shift_m, shift_m + 1e-9, resolution) / resolution
     dy, dx = (normal[0] * steps)[:, None], (normal[1] * steps)[:, None]
@@ -641,8 +639,8 @@ def line_through_wall(
     # a global wall lies under it (or a cell beside: a line's steps may pass between the cells
     # of a thin wall it crosses on a diagonal).
     tol_px = tolerance_m / resolution
-    near_g = near(g, ~(offset_distances(tol_px) > tol_px))
-    drawn = near(lw, ~(offset_distances(width_px) > width_px))
+    near_g = within(g, tol_px)
+    drawn = within(lw, width_px)
     off_walls = ~at(near_g, along) & at(drawn, along)
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     under = at(cv2.dilate(g.view(np.uint8), cross).view(bool), along)

@@ -28,6 +28,7 @@ from mapserver.diff import (
     near_at,
     offset_distances,
     raw_differences,
+    within,
 )
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid, box_around, box_of_cells, landing_box, nonzero_cells, resample
@@ -61,6 +62,7 @@ def test_near_is_the_thresholded_distance(
     reach = offset_distances(t)
     # Both ways the stages write the test: in pixels, and in metres.
     assert np.array_equal(~near(walls, ~(reach > t)), d > t)
+    assert np.array_equal(within(walls, t), d <= t)  # the same, as one call
     assert np.array_equal(
         ~near(walls, ~(reach * resolution > tolerance_m)), d * resolution > tolerance_m
     )
