@@ -16,8 +16,9 @@ prints one line per set. ``compare`` prints, per set that differs, F1, changes f
 positives before and after, then the totals per role (tuning, held out) and per kind of set
 (its ``--cases``, and whether it overrides the sensor: :func:`kind_of`). ``census`` runs
 ``census.py SET RUN/NAME --counts RUN/census/NAME.json`` on each chosen set of a run (its
-lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the misses and the judged differences of all of
-them added up: where the changes of many sets were lost, in one table.
+lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the
+misses and the judged differences of all of them added up: where the changes of many sets
+were lost, in one table.
 
 A variant of the code is measured from a git worktree with a virtual environment of its own
 (``python3 -m venv .venv && .venv/bin/pip install -e '.[dev]'`` there, then that
@@ -221,6 +222,7 @@ def compare(args: argparse.Namespace) -> int:
     for role in ("public", "tuning", "held"):
         groups[role] = [n for n in common if after[n].get("role") == role]
     # Then per kind of set (issue 12's targets are per kind), tuning and held out together.
+    # (sets.tsv's names and arguments only: the sets themselves are not read.)
     kinds = {s.name: kind_of(s.args) for s in read_sets(Path(), public=False)}
     for name in common:
         if name in kinds:
