@@ -658,32 +658,26 @@ def line_through_wall(
         if before < beyond or after < beyond:
             continue
         p = along[i]
-        if _on_both_sides(g_pts, p, normal, radius, across_px) and _on_both_sides(
-            standing, p, normal, radius, 2 * width_px, both=False
+        # A wall across the line (reaching off it on both sides), and the local map showing a
+        # wall standing there, off the line.
+        crossed = _across_near(g_pts, p, normal, radius)
+        stands = _across_near(standing, p, normal, radius)
+        if (
+            (crossed >= across_px).any()
+            and (crossed <= -across_px).any()
+            and (np.abs(stands) >= 2 * width_px).any()
         ):
             return True
     return False
 
 
-def _on_both_sides(
-    points: NDArray[np.float64],
-    p: NDArray[np.float64],
-    normal: NDArray[np.float64],
-    radius: float,
-    off: float,
-    *,
-    both: bool = True,
-) -> bool:
-    """Whether ``points`` ((N, 2), cells) within ``radius`` of ``p`` lie ``off`` or more
-    across the line through ``p`` square to ``normal`` on both of its sides (with ``both``
-    False: on either)."""
-    if len(points) == 0:
-        return False
+def _across_near(
+    points: NDArray[np.float64], p: NDArray[np.float64], normal: NDArray[np.float64], radius: float
+) -> NDArray[np.float64]:
+    """How far across the line through ``p`` (square to ``normal``) the ``points`` ((N, 2),
+    cells) within ``radius`` of ``p`` lie, signed by side."""
     d = points - p
-    across = d[(d**2).sum(axis=1) <= radius**2] @ normal
-    if not both:
-        return bool(np.any(np.abs(across) >= off))
-    return bool(np.any(across >= off) and np.any(across <= -off))
+    return np.asarray(d[(d**2).sum(axis=1) <= radius**2] @ normal)
 
 
 __all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall", "line_through_wall"]

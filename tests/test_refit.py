@@ -974,6 +974,24 @@ def test_a_new_wall_along_a_wall_stub_between_two_gaps_is_not_a_heading_error() 
     assert not line_through_wall(cells(new & (np.arange(200) < 100)), local, glob, **kw)
 
 
+def _line_before_wall(
+    cols: slice, unknown: slice | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, object]]:
+    """The corridor with a line 0.35 m in front of its wall over ``cols``, the floor between
+    them seen free but over ``unknown``: the global walls, the local walls, the line and the
+    keywords asking that floor seen (and the pipeline's 0.6 m)."""
+    glob, walls = _corridor()
+    line = np.zeros(glob.shape, bool)
+    line[47, cols] = True
+    walls |= line
+    state = np.full(glob.shape, FREE, np.uint8)
+    state[walls] = OCCUPIED
+    if unknown is not None:
+        state[41:47, unknown] = UNKNOWN
+    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
+    return glob, walls, line, kw
+
+
 @pytest.mark.parametrize("between", [UNKNOWN, FREE])
 def test_a_line_beside_a_wall_is_a_ghost_only_where_the_floor_between_them_was_seen(
     between: int,
@@ -982,14 +1000,9 @@ def test_a_line_beside_a_wall_is_a_ghost_only_where_the_floor_between_them_was_s
     between them is unknown the line hid it (a new wall in front of an old one, the old one
     seen past its ends and on a revisit); where the strip was seen free, the robot looked
     through it at the wall: the line is that wall drawn again."""
-    glob, walls = _corridor()
-    new = np.zeros(glob.shape, bool)
-    new[47, 40:56] = True
-    walls |= new
-    state = np.full(glob.shape, FREE, np.uint8)
-    state[walls] = OCCUPIED
-    state[41:47, 40:56] = between
-    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
+    glob, walls, new, kw = _line_before_wall(
+        slice(40, 56), slice(40, 56) if between == UNKNOWN else None
+    )
     assert ghost_of_wall(cells(new), new, glob, walls, **kw) == (between == FREE)
 
 
@@ -997,14 +1010,7 @@ def test_the_floor_asked_seen_free_is_the_one_behind_the_difference_itself() -> 
     """A 4 m line 0.35 m in front of the wall: the floor between them seen free behind its
     first half (a copy there), unknown behind its second (a new wall hides it). The half that
     hides its floor is no ghost, whatever the other half lets the robot see."""
-    glob, walls = _corridor()
-    line = np.zeros(glob.shape, bool)
-    line[47, 20:100] = True
-    walls |= line
-    state = np.full(glob.shape, FREE, np.uint8)
-    state[walls] = OCCUPIED
-    state[41:47, 60:100] = UNKNOWN
-    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
+    glob, walls, line, kw = _line_before_wall(slice(20, 100), slice(60, 100))
     first, second = line & (np.arange(160) < 60), line & (np.arange(160) >= 60)
     assert ghost_of_wall(cells(first), line, glob, walls, **kw)
     assert not ghost_of_wall(cells(second), line, glob, walls, **kw)
