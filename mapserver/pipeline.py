@@ -894,7 +894,6 @@ def _refit(
     view, local_state, grid = aligned.view, aligned.local_state, aligned.view.grid
     global_walls = view.structure | (view.state == OCCUPIED)
     local_walls = local_state == OCCUPIED
-    local_free = local_state == FREE
 
     def near_wall(xy: np.ndarray, distance_m: float) -> np.ndarray:
         """Per nav2 point of ``xy`` (N, 2): within ``distance_m`` of a global wall, rounded to
@@ -961,7 +960,7 @@ def _refit(
             local_walls,
             resolution=grid.resolution,
             tolerance_m=d.tolerance_m,
-            local_free=local_free,
+            local_state=local_state,
             min_length_m=_GHOST_MIN_LENGTH_M,
         ):
             return True

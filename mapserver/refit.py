@@ -162,7 +162,7 @@ def ghost_of_wall(
     turn_deg: float = 3.0,
     min_length_m: float = 1.5,
     max_width_m: float = 0.2,
-    local_free: BoolArray | None = None,
+    local_state: NDArray[np.uint8] | None = None,
     min_between_free: float = 0.7,
 ) -> bool:
     """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall drawn a
@@ -171,8 +171,8 @@ def ghost_of_wall(
     that one move across itself of at most ``shift_m`` (and a turn of at most ``turn_deg``)
     lays, 80 % of it and 80 % of the difference, within ``tolerance_m`` of a global wall the
     local map also shows in place; the difference itself no wider across that line than
-    ``max_width_m`` (its cells' 5-95 % spread); and, with ``local_free`` ((H, W) bool: the local
-    map's cells seen free), the floor between the line and where that move lays it seen free
+    ``max_width_m`` (its cells' 5-95 % spread); and, with ``local_state`` ((H, W): the local
+    map's cell states), the floor between the line and where that move lays it seen free
     (``min_between_free`` of it: session 38, over 57 generated sets, half of it found 4
     held-out changes fewer than 70 %, 90 % let 11 false positives of the tuning sets back in).
 
@@ -184,7 +184,7 @@ def ghost_of_wall(
     new obstacle in open space is no such line, and one placed beside a wall is shorter than a
     stretch of wall seen twice. A new wall in front of an old one hides the floor between them,
     unseen; a copy leaves it seen, as the robot looked through it at the wall: with
-    ``local_free`` asked, a shorter ``min_length_m`` holds (the pipeline's 0.6 m, session 38).
+    ``local_state`` given, a shorter ``min_length_m`` holds (the pipeline's 0.6 m, session 38).
     """
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
@@ -235,7 +235,7 @@ def ghost_of_wall(
         ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
         return np.asarray(near_target[ir, ic].mean(axis=1))
 
-    free = None if local_free is None else local_free[box]
+    free = None if local_state is None else local_state[box] == FREE
     r, c = own_pts[:, 0], own_pts[:, 1]
 
     def seen_between(qr: NDArray[np.float64], qc: NDArray[np.float64], shift: int) -> bool:

@@ -988,7 +988,7 @@ def _line_before_wall(
     state[walls] = OCCUPIED
     if unknown is not None:
         state[41:47, unknown] = UNKNOWN
-    kw = {"resolution": RES, "tolerance_m": 0.15, "local_free": state == FREE, "min_length_m": 0.6}
+    kw = {"resolution": RES, "tolerance_m": 0.15, "local_state": state, "min_length_m": 0.6}
     return glob, walls, line, kw
 
 
