@@ -143,7 +143,9 @@ class Trace:
 
     compared: bool = False
     grid: Grid | None = None
-    # The aligned local map as compared, and the cells left out of the comparison (None: none).
+    # The global and the aligned local map as compared, and the cells left out of the
+    # comparison (None: none).
+    global_state: NDArray[np.uint8] | None = None
     local_state: NDArray[np.uint8] | None = None
     left_out: NDArray[np.bool_] | None = None
     raw: diff_stage.DiffMasks | None = None
@@ -183,6 +185,7 @@ def observing(trace: Trace) -> Iterator[Trace]:
         trace.compared = bool(aligned.compared)
         trace.grid, trace.masks, trace.evidence = aligned.view.grid, masks, evidence
         trace.local_state, trace.left_out = aligned.local_state, aligned.left_out
+        trace.global_state = aligned.view.state
         return masks, evidence
 
     def observed_raw(*args: Any, **kwargs: Any) -> Any:
