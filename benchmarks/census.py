@@ -88,6 +88,12 @@ from mapserver.scoring import (
 # cells (or the difference) first, but ``left out``, which is given its cells' nav2 points
 # third (``_POINTS_AT``).
 _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]] = {
+    # Asked of every removed cluster, drifted or not, before the re-fit (pipeline._faint).
+    "faint": (
+        refit_stage,
+        "faint_strip",
+        lambda strip, kwargs: pipeline._faint_strip(strip, kwargs["resolution"]),
+    ),
     "floor": (
         refit_stage,
         "floor_seen_share",
@@ -258,6 +264,8 @@ def _shown(value: Any) -> str:
             f"depth {value.depth_m:.2f} m, length {value.length_m:.2f} m, inner {value.inner}, "
             f"walled {value.walled_share:.2f}"
         )
+    if isinstance(value, refit_stage.Strip):
+        return f"spread {value.spread_m:.3f} m, faces {value.faces}, drawn {value.drawn_share:.2f}"
     if isinstance(value, float | np.floating):
         return f"{float(value):.2f}"
     return str(bool(value))

@@ -311,6 +311,62 @@ def spread_across_m(cells: NDArray[np.intp], *, resolution: float) -> float:
 
 
 @dataclass(frozen=True)
+class Strip:
+    """A removed difference as a strip of a wall line: how far its cells spread across the
+    direction they run along (``spread_m``, :func:`spread_across_m`), and of the global walls'
+    faces around it (``faces``) how many the local map draws in place (``drawn``)."""
+
+    spread_m: float
+    faces: int
+    drawn: int
+
+    @property
+    def drawn_share(self) -> float:
+        return self.drawn / self.faces if self.faces else 1.0
+
+
+def faint_strip(
+    cells: NDArray[np.intp],
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    reach_m: float = 1.0,
+    clear_cells: int = 2,
+    tolerance_m: float = 0.1,
+) -> Strip:
+    """How a removed difference of ``cells`` ((N, 2) row, col) sits among the walls around it,
+    on the grid of the two (H, W) state arrays: its spread across itself, and the faces of the
+    global walls (occupied cells with a neighbour that is not) within ``reach_m`` of its cells
+    but more than ``clear_cells`` off them (the wall it is part of on either side of it, the
+    walls next to it), of which those with a local wall within ``tolerance_m``.
+
+    A wall cut through is seen standing on either side of the cut, and so are the walls the
+    robot looked at round it. A strip one or two cells wide of a wall line seen free where the
+    local map draws few of the walls around it is what rays grazing that wall from far off, or
+    a part of the building seen faintly (a long lidar's last metres, a coarse map, drift left
+    in a pass), draw of a wall still standing: its gaps, not a piece gone."""
+    rows, cols = cells[:, 0], cells[:, 1]
+    reach = max(1, round(reach_m / resolution))
+    box = box_of_cells(rows, cols, reach + 1, global_state.shape)
+    walls = (global_state[box] == OCCUPIED).view(np.uint8)
+    faces = walls.view(bool) & (cv2.erode(walls, np.ones((3, 3), np.uint8)) == 0)
+    own = np.zeros(walls.shape, np.uint8)
+    own[rows - box[0].start, cols - box[1].start] = 1
+
+    def disk(radius: int) -> NDArray[np.uint8]:
+        return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
+
+    around = (cv2.dilate(own, disk(reach)) > 0) & ~(cv2.dilate(own, disk(clear_cells)) > 0)
+    ring = faces & around
+    local_walls = (local_state[box] == OCCUPIED).view(np.uint8)
+    tol = max(1, round(tolerance_m / resolution))
+    drawn = ring & (cv2.dilate(local_walls, disk(tol)) > 0)
+    spread = spread_across_m(cells, resolution=resolution)
+    return Strip(spread, int(np.count_nonzero(ring)), int(np.count_nonzero(drawn)))
+
+
+@dataclass(frozen=True)
 class Faces:
     """The local walls around a removed difference: ``walls`` of them within reach, of which
     ``seen_behind`` have free cells on their far side; ``depth_m``: how deep inside the

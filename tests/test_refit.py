@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
+from mapserver import pipeline
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import (
@@ -18,6 +19,7 @@ from mapserver.refit import (
     band_in_structure,
     explained_by_refit,
     faces_seen_from_behind,
+    faint_strip,
     floor_seen_share,
     ghost_of_wall,
     line_through_wall,
@@ -1014,3 +1016,62 @@ def test_the_floor_asked_seen_free_is_the_one_behind_the_difference_itself() -> 
     first, second = line & (np.arange(160) < 60), line & (np.arange(160) >= 60)
     assert ghost_of_wall(cells(first), line, glob, walls, **kw)
     assert not ghost_of_wall(cells(second), line, glob, walls, **kw)
+
+
+def _corridor(drawn: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 4 m corridor between two thin walls (rows 40 and 60 of a 100 x 100 grid of 0.05 m
+    cells) and a local map that saw its floor, and a strip of 0.5 m of the upper wall free:
+    with ``drawn``, the local map draws both walls in place around the strip, else neither
+    (the corridor's floor seen, its walls too faintly to be drawn). The global and local
+    states, and the strip's cells."""
+    global_state = np.full((100, 100), UNKNOWN, np.uint8)
+    global_state[41:60, 10:90] = FREE
+    global_state[40, 10:90] = OCCUPIED
+    global_state[60, 10:90] = OCCUPIED
+    local_state = np.full_like(global_state, UNKNOWN)
+    local_state[40:61, 10:90] = FREE
+    if drawn:
+        local_state[40, 10:90] = OCCUPIED
+        local_state[60, 10:90] = OCCUPIED
+    local_state[40, 45:55] = FREE
+    cells = np.array([[40, c] for c in range(45, 55)])
+    return global_state, local_state, cells
+
+
+def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_strip() -> None:
+    global_state, local_state, cells = _corridor(drawn=True)
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    # The upper wall within 1 m either side of the strip (2 x 18 cells beyond the 2 kept
+    # clear) and the lower wall's cells within 1 m of it: all drawn.
+    assert strip.faces > 30 and strip.drawn == strip.faces
+    assert strip.spread_m == 0.0
+    assert not pipeline._faint_strip(strip, RES)
+
+
+def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_strip() -> None:
+    global_state, local_state, cells = _corridor(drawn=False)
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert strip.faces > 30 and strip.drawn == 0 and strip.drawn_share == 0.0
+    assert pipeline._faint_strip(strip, RES)
+
+
+def test_a_block_gone_is_no_strip_however_faint_the_walls_around_it() -> None:
+    # A 0.3 m x 0.3 m block in the corridor seen gone: it spreads across itself.
+    global_state, local_state, _ = _corridor(drawn=False)
+    global_state[48:54, 30:36] = OCCUPIED
+    block = np.argwhere(global_state[:, :] == OCCUPIED)
+    block = block[(block[:, 0] >= 48) & (block[:, 0] < 54)]
+    strip = faint_strip(block, global_state, local_state, resolution=RES)
+    assert strip.spread_m > 0.05 and strip.drawn_share < 0.5
+    assert not pipeline._faint_strip(strip, RES)
+
+
+def test_a_strip_with_few_faces_around_it_keeps_its_evidence() -> None:
+    # A free-standing wall 0.5 m long, nothing else within 1 m: no faces to judge it by.
+    global_state = np.full((60, 60), FREE, np.uint8)
+    global_state[30, 25:35] = OCCUPIED
+    local_state = np.full_like(global_state, FREE)
+    cells = np.array([[30, c] for c in range(25, 35)])
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert strip.faces == 0 and strip.drawn_share == 1.0
+    assert not pipeline._faint_strip(strip, RES)
