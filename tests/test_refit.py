@@ -1018,7 +1018,7 @@ def test_the_floor_asked_seen_free_is_the_one_behind_the_difference_itself() -> 
     assert not ghost_of_wall(cells(second), line, glob, walls, **kw)
 
 
-def _corridor(drawn: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _corridor_strip(drawn: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 4 m corridor between two thin walls (rows 40 and 60 of a 100 x 100 grid of 0.05 m
     cells) and a local map that saw its floor, and a strip of 0.5 m of the upper wall free:
     with ``drawn``, the local map draws both walls in place around the strip, else neither
@@ -1039,7 +1039,7 @@ def _corridor(drawn: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_strip() -> None:
-    global_state, local_state, cells = _corridor(drawn=True)
+    global_state, local_state, cells = _corridor_strip(drawn=True)
     strip = faint_strip(cells, global_state, local_state, resolution=RES)
     # The upper wall within 1 m either side of the strip (2 x 18 cells beyond the 2 kept
     # clear) and the lower wall's cells within 1 m of it: all drawn.
@@ -1049,7 +1049,7 @@ def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_st
 
 
 def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_strip() -> None:
-    global_state, local_state, cells = _corridor(drawn=False)
+    global_state, local_state, cells = _corridor_strip(drawn=False)
     strip = faint_strip(cells, global_state, local_state, resolution=RES)
     assert strip.faces > 30 and strip.drawn == 0 and strip.drawn_share == 0.0
     assert pipeline._faint_strip(strip, RES)
@@ -1057,7 +1057,7 @@ def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_st
 
 def test_a_block_gone_is_no_strip_however_faint_the_walls_around_it() -> None:
     # A 0.3 m x 0.3 m block in the corridor seen gone: it spreads across itself.
-    global_state, local_state, _ = _corridor(drawn=False)
+    global_state, local_state, _ = _corridor_strip(drawn=False)
     global_state[48:54, 30:36] = OCCUPIED
     block = np.argwhere(global_state[:, :] == OCCUPIED)
     block = block[(block[:, 0] >= 48) & (block[:, 0] < 54)]
