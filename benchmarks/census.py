@@ -265,7 +265,10 @@ def _shown(value: Any) -> str:
             f"walled {value.walled_share:.2f}"
         )
     if isinstance(value, refit_stage.Strip):
-        return f"spread {value.spread_m:.3f} m, faces {value.faces}, drawn {value.drawn_share:.2f}"
+        return (
+            f"spread {value.spread_m:.3f} m, along {value.along_m:.2f} m, faces {value.faces}, "
+            f"drawn {value.drawn_share:.2f}"
+        )
     if isinstance(value, float | np.floating):
         return f"{float(value):.2f}"
     return str(bool(value))

@@ -7,7 +7,7 @@ given) is processed again with the census's observers (``census.observing``), an
 its truth's changes and each of its reported differences labelled ``false_positive`` or
 ``neutral`` one PNG is written to OUT_DIR, named ``<bundle>_change<id>_<kind>_<found|MISS>.png``
 or ``<bundle>_difference<id>_<kind>_<label>.png`` (a change of another kind, a walker, is
-``unscored``). Three panels side by side, each a square of
+``unscored``, a change the robot could not see ``unobserved``). Three panels side by side, each a square of
 ``--half`` metres each way around the change's polygon's mean corner (or the difference's
 centroid), cells scaled up ``--scale`` times:
 
@@ -130,9 +130,16 @@ def crops_of_bundle(
             outcome = pipeline.process_bundle(case.bundle_dir, config, bundle_id=case.bundle_id)
         except MapserverError as error:
             return [f"== {case.bundle_id}: failed ({error.stage}: {error.reason}), no crops"]
-    if trace.grid is None or trace.local_state is None or trace.global_state is None:
+    if (
+        not trace.compared
+        or trace.grid is None
+        or trace.local_state is None
+        or trace.global_state is None
+    ):
         return [f"== {case.bundle_id}: nothing compared (alignment not trusted), no crops"]
-    lines = [f"== {case.bundle_id}", *_mismatch(outcome.result, result)]
+    lines = [f"== {case.bundle_id}"]
+    if result is not None:
+        lines += _mismatch(outcome.result, result)
     scored = result if result is not None else parse_result(outcome.result)
     score = score_bundle(truth, scored)
     labels = {s.difference_id: s.label for s in score.differences}
@@ -140,8 +147,10 @@ def crops_of_bundle(
     for change in truth.changes:
         if change.id in score.unmatched_change_ids:
             state = "MISS"
-        else:  # a walker or a door is never to be found: not scored
-            state = "found" if change.kind in _OUTLINE else "unscored"
+        elif change.kind not in _OUTLINE:  # a walker or a door is never to be found
+            state = "unscored"
+        else:  # scored only when the robot could see it
+            state = "found" if change.observed else "unobserved"
         spots.append((f"change{change.id}_{change.kind}_{state}", change.polygon_xy.mean(axis=0)))
     for d in scored.differences:
         label = labels.get(d.id)

@@ -643,8 +643,8 @@ def _faint(
     """Whether a removed difference is a strip of a wall line seen free where the local map
     draws few of the walls around it (:func:`mapserver.refit.faint_strip`): a line no wider than
     a pass's drawing of a wall spreads (``_FOLD_LINE_SPREAD_M``, ``_FOLD_LINE_CELLS``), at least
-    ``_FAINT_MIN_FACES`` global face cells around it, under ``_FAINT_DRAWN_SHARE`` of them with
-    a local wall within ``_FAINT_TOLERANCE_M``."""
+    ``_FAINT_MIN_FACES`` global face cells around it that the robot looked at, under
+    ``_FAINT_DRAWN_SHARE`` of them with a local wall within ``_FAINT_TOLERANCE_M``."""
     assert diff.cells is not None
     strip = refit_stage.faint_strip(
         diff.cells, *states, resolution=resolution, tolerance_m=_FAINT_TOLERANCE_M
@@ -653,9 +653,15 @@ def _faint(
 
 
 def _faint_strip(strip: refit_stage.Strip, resolution: float) -> bool:
+    """Whether ``strip`` is a line (spread across under a pass's line, and at least
+    ``_FAINT_ELONGATION`` times as long as it is wide, a cell wide at least: a small box or a
+    few cells seen gone are no line) among faces the local map mostly does not draw."""
     line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * resolution)
+    # A uniform segment's length is sqrt(12) times its standard deviation.
+    length_m, width_m = math.sqrt(12) * strip.along_m, math.sqrt(12) * strip.spread_m
     return (
         strip.spread_m < line_m
+        and length_m >= _FAINT_ELONGATION * max(width_m, resolution)
         and strip.faces >= _FAINT_MIN_FACES
         and strip.drawn_share < _FAINT_DRAWN_SHARE
     )
@@ -669,6 +675,7 @@ def _faint_strip(strip: refit_stage.Strip, resolution: float) -> bool:
 # census over the 35 tuning sets: of the removed differences reported as lines, 3 correct and
 # 15 false ones draw under half the faces around them, 243 correct and 23 false ones more.
 _FAINT_DRAWN_SHARE = 0.5
+_FAINT_ELONGATION = 3.0
 _FAINT_MIN_FACES = 10
 _FAINT_TOLERANCE_M = 0.1
 

@@ -304,19 +304,19 @@ def spread_across_m(cells: NDArray[np.intp], *, resolution: float) -> float:
     cell; an object drawn with a depth of its own, or a corner, spreads more. 0.0 for fewer
     than two cells. (``ghost_of_wall`` measures a line's width its own way: the range across
     it, for a wall's copy up to ``max_width_m`` wide.)"""
-    if len(cells) < 2:
-        return 0.0
-    covariance = np.cov(cells.astype(np.float64).T)
-    return math.sqrt(max(float(np.linalg.eigvalsh(covariance)[0]), 0.0)) * resolution
+    return _spreads_m(cells, resolution=resolution)[0]
 
 
 @dataclass(frozen=True)
 class Strip:
     """A removed difference as a strip of a wall line: how far its cells spread across the
-    direction they run along (``spread_m``, :func:`spread_across_m`), and of the global walls'
-    faces around it (``faces``) how many the local map draws in place (``drawn``)."""
+    direction they run along (``spread_m``, :func:`spread_across_m`) and along it
+    (``along_m``, the same in the direction they spread most), and of the global walls' faces
+    around it that the robot looked at (``faces``) how many the local map draws in place
+    (``drawn``)."""
 
     spread_m: float
+    along_m: float
     faces: int
     drawn: int
 
@@ -332,14 +332,16 @@ def faint_strip(
     *,
     resolution: float,
     reach_m: float = 1.0,
-    clear_cells: int = 2,
+    clear_m: float = 0.1,
     tolerance_m: float = 0.1,
 ) -> Strip:
     """How a removed difference of ``cells`` ((N, 2) row, col) sits among the walls around it,
-    on the grid of the two (H, W) state arrays: its spread across itself, and the faces of the
-    global walls (occupied cells with a neighbour that is not) within ``reach_m`` of its cells
-    but more than ``clear_cells`` off them (the wall it is part of on either side of it, the
-    walls next to it), of which those with a local wall within ``tolerance_m``.
+    on the grid of the two (H, W) state arrays: its spread across and along itself, and the
+    faces of the global walls (occupied cells with a neighbour that is not) within ``reach_m``
+    of its cells but more than ``clear_m`` (two cells at least) off them (the wall it is part
+    of on either side of it, the walls next to it), a cell next to them seen free (a face the
+    robot looked at: not the back of a wall, facing a room it never entered), and of those the
+    ones with a local wall within ``tolerance_m``.
 
     A wall cut through is seen standing on either side of the cut, and so are the walls the
     robot looked at round it. A strip one or two cells wide of a wall line seen free where the
@@ -348,22 +350,37 @@ def faint_strip(
     in a pass), draw of a wall still standing: its gaps, not a piece gone."""
     rows, cols = cells[:, 0], cells[:, 1]
     reach = max(1, round(reach_m / resolution))
+    clear = max(2, round(clear_m / resolution))
     box = box_of_cells(rows, cols, reach + 1, global_state.shape)
     walls = (global_state[box] == OCCUPIED).view(np.uint8)
-    faces = walls.view(bool) & (cv2.erode(walls, np.ones((3, 3), np.uint8)) == 0)
+    square = np.ones((3, 3), np.uint8)
+    faces = walls.view(bool) & (cv2.erode(walls, square) == 0)
+    looked = cv2.dilate((local_state[box] == FREE).view(np.uint8), square) > 0
     own = np.zeros(walls.shape, np.uint8)
     own[rows - box[0].start, cols - box[1].start] = 1
 
     def disk(radius: int) -> NDArray[np.uint8]:
         return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
 
-    around = (cv2.dilate(own, disk(reach)) > 0) & ~(cv2.dilate(own, disk(clear_cells)) > 0)
-    ring = faces & around
+    around = (cv2.dilate(own, disk(reach)) > 0) & ~(cv2.dilate(own, disk(clear)) > 0)
+    ring = faces & around & looked
     local_walls = (local_state[box] == OCCUPIED).view(np.uint8)
     tol = max(1, round(tolerance_m / resolution))
     drawn = ring & (cv2.dilate(local_walls, disk(tol)) > 0)
-    spread = spread_across_m(cells, resolution=resolution)
-    return Strip(spread, int(np.count_nonzero(ring)), int(np.count_nonzero(drawn)))
+    spread, along = _spreads_m(cells, resolution=resolution)
+    return Strip(spread, along, int(np.count_nonzero(ring)), int(np.count_nonzero(drawn)))
+
+
+def _spreads_m(cells: NDArray[np.intp], *, resolution: float) -> tuple[float, float]:
+    """The standard deviations of ``cells``' centres across and along their main direction
+    (the smaller and the larger principal axis), metres; zeros for fewer than two cells."""
+    if len(cells) < 2:
+        return 0.0, 0.0
+    low, high = np.linalg.eigvalsh(np.cov(cells.astype(np.float64).T))
+    return (
+        math.sqrt(max(float(low), 0.0)) * resolution,
+        math.sqrt(max(float(high), 0.0)) * resolution,
+    )
 
 
 @dataclass(frozen=True)

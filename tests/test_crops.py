@@ -100,3 +100,28 @@ def test_no_bundle_matching_is_an_error(
     set_dir, outbox, _, _ = planted
     assert crops.main([str(set_dir), str(outbox), str(tmp_path / "c"), "nosuchbundle"]) == 1
     assert not list((tmp_path / "c").glob("*.png"))
+
+
+def test_without_a_result_in_the_outbox_the_re_run_labels_the_crops(
+    crops: ModuleType, planted: tuple[Path, Path, list[dict], float], tmp_path: Path
+) -> None:
+    set_dir, _, _, _ = planted
+    empty = tmp_path / "no-outbox"
+    empty.mkdir()
+    case = crops.find_cases(set_dir)[0]
+    lines = crops.crops_of_bundle(
+        case, empty, load_config(None), tmp_path, half_m=HALF_M, scale=SCALE
+    )
+    assert lines[0] == "== b1" and not any("MISMATCH" in line for line in lines)
+    assert (tmp_path / "b1_change99_added_MISS.png").is_file()
+
+
+def test_an_untrusted_alignment_compares_nothing_and_writes_no_crop(
+    crops: ModuleType, planted: tuple[Path, Path, list[dict], float], tmp_path: Path
+) -> None:
+    set_dir, outbox, _, _ = planted
+    config = tmp_path / "untrusting.yaml"
+    config.write_text(yaml.safe_dump({"pipeline": {"align": {"min_score": 1.0}}}))
+    out = tmp_path / "crops"
+    assert crops.main([str(set_dir), str(outbox), str(out), "--config", str(config)]) == 0
+    assert not list(out.glob("*.png"))

@@ -1018,55 +1018,97 @@ def test_the_floor_asked_seen_free_is_the_one_behind_the_difference_itself() -> 
     assert not ghost_of_wall(cells(second), line, glob, walls, **kw)
 
 
-def _corridor_strip(drawn: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A 4 m corridor between two thin walls (rows 40 and 60 of a 100 x 100 grid of 0.05 m
-    cells) and a local map that saw its floor, and a strip of 0.5 m of the upper wall free:
-    with ``drawn``, the local map draws both walls in place around the strip, else neither
-    (the corridor's floor seen, its walls too faintly to be drawn). The global and local
-    states, and the strip's cells."""
-    global_state = np.full((100, 100), UNKNOWN, np.uint8)
-    global_state[41:60, 10:90] = FREE
-    global_state[40, 10:90] = OCCUPIED
-    global_state[60, 10:90] = OCCUPIED
+def _corridor_strip(
+    drawn: bool, res: float = RES, wall_off_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A corridor 1 m wide and 4 m long between two thin walls (y = 2 and 3 m of a 5 m x 5 m
+    grid of ``res`` cells, a cell thick), a local map that saw its floor, and a strip of 0.5 m
+    of the upper wall seen free: with ``drawn``, the local map draws both walls round the strip
+    (``wall_off_m`` into the corridor), else neither (the floor seen, the walls too faintly to
+    be drawn). The global and local states, and the strip's cells."""
+    n = round(5.0 / res)
+
+    def at(metres: float) -> int:
+        return round(metres / res)
+
+    upper, lower, x0, x1 = at(2.0), at(3.0), at(0.5), at(4.5)
+    global_state = np.full((n, n), UNKNOWN, np.uint8)
+    global_state[upper + 1 : lower, x0:x1] = FREE
+    global_state[upper, x0:x1] = OCCUPIED
+    global_state[lower, x0:x1] = OCCUPIED
     local_state = np.full_like(global_state, UNKNOWN)
-    local_state[40:61, 10:90] = FREE
+    local_state[upper : lower + 1, x0:x1] = FREE
     if drawn:
-        local_state[40, 10:90] = OCCUPIED
-        local_state[60, 10:90] = OCCUPIED
-    local_state[40, 45:55] = FREE
-    cells = np.array([[40, c] for c in range(45, 55)])
+        off = at(wall_off_m)
+        local_state[upper + off, x0:x1] = OCCUPIED
+        local_state[lower - off, x0:x1] = OCCUPIED
+    s0, s1 = at(2.25), at(2.75)
+    local_state[upper, s0:s1] = FREE
+    cells = np.array([[upper, c] for c in range(s0, s1)])
     return global_state, local_state, cells
 
 
-def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_strip() -> None:
-    global_state, local_state, cells = _corridor_strip(drawn=True)
-    strip = faint_strip(cells, global_state, local_state, resolution=RES)
-    # The upper wall within 1 m either side of the strip (2 x 18 cells beyond the 2 kept
-    # clear) and the lower wall's cells within 1 m of it: all drawn.
-    assert strip.faces > 30 and strip.drawn == strip.faces
+@pytest.mark.parametrize("res", [0.025, 0.05, 0.1])
+def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_strip(
+    res: float,
+) -> None:
+    global_state, local_state, cells = _corridor_strip(drawn=True, res=res)
+    strip = faint_strip(cells, global_state, local_state, resolution=res)
+    # The upper wall either side of the strip, the lower one under it: all drawn.
+    assert strip.faces >= 10 and strip.drawn == strip.faces
     assert strip.spread_m == 0.0
-    assert not pipeline._faint_strip(strip, RES)
+    assert math.sqrt(12) * strip.along_m == pytest.approx(0.5, abs=2 * res)  # 0.5 m long
+    assert not pipeline._faint_strip(strip, res)
 
 
-def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_strip() -> None:
-    global_state, local_state, cells = _corridor_strip(drawn=False)
+@pytest.mark.parametrize("res", [0.025, 0.05, 0.1])
+def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_strip(
+    res: float,
+) -> None:
+    global_state, local_state, cells = _corridor_strip(drawn=False, res=res)
+    strip = faint_strip(cells, global_state, local_state, resolution=res)
+    assert strip.faces >= 10 and strip.drawn == 0 and strip.drawn_share == 0.0
+    assert pipeline._faint_strip(strip, res)
+
+
+@pytest.mark.parametrize(("off_m", "drawn"), [(0.1, True), (0.15, False)])
+def test_a_face_counts_as_drawn_with_a_local_wall_within_a_tenth_of_a_metre(
+    off_m: float, drawn: bool
+) -> None:
+    global_state, local_state, cells = _corridor_strip(drawn=True, wall_off_m=off_m)
     strip = faint_strip(cells, global_state, local_state, resolution=RES)
-    assert strip.faces > 30 and strip.drawn == 0 and strip.drawn_share == 0.0
-    assert pipeline._faint_strip(strip, RES)
+    assert (strip.drawn_share == 1.0) is drawn and (strip.drawn == 0) is not drawn
+    assert pipeline._faint_strip(strip, RES) is not drawn
+
+
+def test_the_back_of_a_wall_the_robot_never_looked_at_is_not_counted() -> None:
+    # The upper wall 0.3 m thick, the room behind it never seen: only its front face, drawn,
+    # counts (its back, facing unknown space, would make the strip look faint).
+    global_state, local_state, cells = _corridor_strip(drawn=True)
+    global_state[34:40, 10:90] = OCCUPIED
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert strip.faces >= 10 and strip.drawn_share == 1.0
+    # Seen from behind too (the room behind it free in the local map), the back counts.
+    local_state[:34, 10:90] = FREE
+    behind = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert behind.faces > strip.faces and behind.drawn_share < 0.5
 
 
 def test_a_block_gone_is_no_strip_however_faint_the_walls_around_it() -> None:
-    # A 0.3 m x 0.3 m block in the corridor seen gone: it spreads across itself.
-    global_state, local_state, _ = _corridor_strip(drawn=False)
-    global_state[48:54, 30:36] = OCCUPIED
-    block = np.argwhere(global_state[:, :] == OCCUPIED)
-    block = block[(block[:, 0] >= 48) & (block[:, 0] < 54)]
-    strip = faint_strip(block, global_state, local_state, resolution=RES)
-    assert strip.spread_m > 0.05 and strip.drawn_share < 0.5
-    assert not pipeline._faint_strip(strip, RES)
+    # A 0.3 m x 0.3 m block in the corridor seen gone spreads across itself; a 0.15 m one
+    # (3 x 3 cells) spreads less than a line may, but is no longer than it is wide.
+    for side in (6, 3):
+        global_state, local_state, _ = _corridor_strip(drawn=False)
+        global_state[48 : 48 + side, 30 : 30 + side] = OCCUPIED
+        block = np.argwhere(global_state[48 : 48 + side, 30 : 30 + side] == OCCUPIED) + np.array(
+            [48, 30]
+        )
+        strip = faint_strip(block, global_state, local_state, resolution=RES)
+        assert strip.drawn_share < 0.5
+        assert not pipeline._faint_strip(strip, RES)
 
 
-def test_a_strip_with_few_faces_around_it_keeps_its_evidence() -> None:
+def test_a_strip_with_no_faces_around_it_keeps_its_evidence() -> None:
     # A free-standing wall 0.5 m long, nothing else within 1 m: no faces to judge it by.
     global_state = np.full((60, 60), FREE, np.uint8)
     global_state[30, 25:35] = OCCUPIED
