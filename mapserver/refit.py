@@ -356,13 +356,11 @@ def faint_strip(
     square = np.ones((3, 3), np.uint8)
     faces = walls.view(bool) & (cv2.erode(walls, square) == 0)
     looked = cv2.dilate((local_state[box] == FREE).view(np.uint8), square) > 0
-    own = np.zeros(walls.shape, np.uint8)
-    own[rows - box[0].start, cols - box[1].start] = 1
 
     def disk(radius: int) -> NDArray[np.uint8]:
         return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
 
-    around = (cv2.dilate(own, disk(reach)) > 0) & ~(cv2.dilate(own, disk(clear)) > 0)
+    around = _around(rows, cols, box, disk(reach)) & ~_around(rows, cols, box, disk(clear))
     ring = faces & around & looked
     local_walls = (local_state[box] == OCCUPIED).view(np.uint8)
     tol = max(1, round(tolerance_m / resolution))
