@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from bench_support import benchmark_module
+from bench_support import benchmark_module, one_bundle_set
 
 from mapserver import cluster as cluster_stage
 from mapserver import piecewise, pipeline, synth
@@ -35,22 +35,6 @@ def census() -> Iterator[ModuleType]:
         yield module
 
 
-def _one_bundle_set(root: Path, scenario: synth.SyntheticBundle) -> tuple[Path, Path]:
-    """A set of one bundle (``s1/bundles/b1`` and its truth) and an outbox holding the
-    pipeline's result for it, as ``bench_public.py --out`` leaves it."""
-    set_dir = root / "set"
-    truth_path = set_dir / "s1" / "truth" / "b1.yaml"
-    truth_path.parent.mkdir(parents=True)
-    bundle = synth.write_scenario(
-        scenario, set_dir / "s1" / "bundles", "b1", truth_path=truth_path, stamp=STAMP
-    )
-    outcome = pipeline.process_bundle(bundle, load_config(None))
-    outbox = root / "outbox"
-    (outbox / "b1").mkdir(parents=True)
-    (outbox / "b1" / "result.yaml").write_text(yaml.safe_dump(outcome.result))
-    return set_dir, outbox
-
-
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A 20 m office session without drift (the re-fit does not run)."""
@@ -58,7 +42,7 @@ def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     scenario = synth.make_scenario(
         office, seed=5, route_length_m=20, n_added=3, n_removed=2, n_people=0
     )
-    return _one_bundle_set(tmp_path_factory.mktemp("clean"), scenario)
+    return one_bundle_set(tmp_path_factory.mktemp("clean"), scenario, STAMP)
 
 
 @pytest.fixture

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from bench_support import benchmark_module
+from bench_support import benchmark_module, one_bundle_set
 
-from mapserver import pipeline, synth
+from mapserver import synth
 from mapserver.config import load_config
 
 STAMP = "2026-12-02T06:00:00Z"
@@ -31,20 +31,14 @@ def planted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[
     """A one-bundle set of a 20 m office session and its outbox, the truth holding one more
     added change (99) on the robot's own pose, where nothing was put: a change no stage saw.
     Also the real changes, and the work grid's resolution."""
-    root = tmp_path_factory.mktemp("crops")
     office = synth.make_office_map(width_m=26, height_m=18, rng=11)
     scenario = synth.make_scenario(
         office, seed=5, route_length_m=20, n_added=3, n_removed=2, n_people=0
     )
-    set_dir = root / "set"
+    set_dir, outbox = one_bundle_set(tmp_path_factory.mktemp("crops"), scenario, STAMP)
     truth_path = set_dir / "s1" / "truth" / "b1.yaml"
-    truth_path.parent.mkdir(parents=True)
-    bundle = synth.write_scenario(
-        scenario, set_dir / "s1" / "bundles", "b1", truth_path=truth_path, stamp=STAMP
-    )
-    outcome = pipeline.process_bundle(bundle, load_config(None))
-    (root / "outbox" / "b1").mkdir(parents=True)
-    (root / "outbox" / "b1" / "result.yaml").write_text(yaml.safe_dump(outcome.result))
+    bundle = set_dir / "s1" / "bundles" / "b1"
+    result = yaml.safe_load((outbox / "b1" / "result.yaml").read_text())
     truth = yaml.safe_load(truth_path.read_text())
     real = list(truth["changes"])
     pose = yaml.safe_load((bundle / "bundle.yaml").read_text())["pose"]["nav2"]
@@ -52,7 +46,7 @@ def planted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[
     square = [[x - 0.2, y - 0.2], [x + 0.2, y - 0.2], [x + 0.2, y + 0.2], [x - 0.2, y + 0.2]]
     truth["changes"].append({"id": 99, "kind": "added", "polygon": square, "observed": True})
     truth_path.write_text(yaml.safe_dump(truth))
-    return set_dir, root / "outbox", real, outcome.result["map"]["resolution"]
+    return set_dir, outbox, real, result["map"]["resolution"]
 
 
 def test_each_change_gets_three_panels_named_by_what_became_of_it(
