@@ -196,8 +196,7 @@ def ghost_of_wall(
     target = g & within(local_walls[box], tol_px)
     if not target.any():
         return False
-    k = math.ceil(reach_m / resolution)
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1,) * 2)
+    disc = _disk(math.ceil(reach_m / resolution))
     pr, pc = nonzero_cells(added[box] & _around(rows, cols, box, disc))
     if len(pr) < 3:
         return False
@@ -356,15 +355,11 @@ def faint_strip(
     square = np.ones((3, 3), np.uint8)
     faces = walls.view(bool) & (cv2.erode(walls, square) == 0)
     looked = cv2.dilate((local_state[box] == FREE).view(np.uint8), square) > 0
-
-    def disk(radius: int) -> NDArray[np.uint8]:
-        return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
-
-    around = _around(rows, cols, box, disk(reach)) & ~_around(rows, cols, box, disk(clear))
+    around = _around(rows, cols, box, _disk(reach)) & ~_around(rows, cols, box, _disk(clear))
     ring = faces & around & looked
     local_walls = (local_state[box] == OCCUPIED).view(np.uint8)
     tol = max(1, round(tolerance_m / resolution))
-    drawn = ring & (cv2.dilate(local_walls, disk(tol)) > 0)
+    drawn = ring & (cv2.dilate(local_walls, _disk(tol)) > 0)
     spread, along = _spreads_m(cells, resolution=resolution)
     return Strip(spread, along, int(np.count_nonzero(ring)), int(np.count_nonzero(drawn)))
 
@@ -513,6 +508,11 @@ def band_in_structure(
         int(np.count_nonzero(inner)),
         int(np.count_nonzero(walled)),
     )
+
+
+def _disk(radius: int) -> NDArray[np.uint8]:
+    """A filled ellipse kernel ``radius`` cells each way from its centre, for cv2.dilate."""
+    return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
 
 
 def _around(
