@@ -8,6 +8,7 @@ in the repository and the commands in one place::
     .venv/bin/python benchmarks/run_sets.py run /tmp/run-b --only drift     # names containing drift
     .venv/bin/python benchmarks/run_sets.py compare /tmp/run-a /tmp/run-b   # per set, and totals
     .venv/bin/python benchmarks/run_sets.py census /tmp/run-a --only drift --all  # where lost
+    .venv/bin/python benchmarks/run_sets.py table /tmp/run-a /tmp/run-b README.md  # its totals
 
 ``run`` generates each missing set under ``--sets`` (default ``/tmp/mapserver-sets``) with
 ``make_scenarios.py``, runs ``bench_public.py SET --out RUN/NAME --json`` on it (the public and
@@ -18,7 +19,10 @@ positives before and after, then the totals per role (tuning, held out) and per 
 ``census.py SET RUN/NAME --counts RUN/census/NAME.json`` on each chosen set of a run (its
 lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the
 misses and the judged differences of all of them added up: where the changes of many sets
-were lost, in one table.
+were lost, in one table. ``table`` writes the numbers of two runs into the README's table of
+totals (each row whose first cell names a set's arguments in backticks, or starts with the
+public set's name): precision, recall and F1 of the second run, F1 of the first as "before",
+and both alignment p90s (a tool three sessions wrote in /tmp and lost).
 
 A variant of the code is measured from a git worktree with a virtual environment of its own
 (``python3 -m venv .venv && .venv/bin/pip install -e '.[dev]'`` there, then that
@@ -240,6 +244,57 @@ def compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def table(args: argparse.Namespace) -> int:
+    """Rewrite the README's rows of totals from two runs; exit status 1 when a set of either
+    run has no row, or a row no set (each named)."""
+    before, after = _load(Path(args.before)), _load(Path(args.after))
+    names = {" ".join(s.args): s.name for s in read_sets(Path(), public=False)}
+    readme = Path(args.readme)
+    lines = readme.read_text().splitlines(keepends=True)
+    done, missing = set(), 0
+    for i, line in enumerate(lines):
+        name = _row_set(line, names)
+        if name is None:
+            continue
+        if name not in before or name not in after:
+            print(f"{name}: not in both runs, row left as it was")
+            missing += 1
+            continue
+        label = line.split("|")[1]
+        lines[i] = _row(label, before[name]["total"], after[name]["total"])  # type: ignore[arg-type]
+        done.add(name)
+    for name in sorted(set(after) - done):
+        print(f"{name}: no row in {readme}")
+        missing += 1
+    readme.write_text("".join(lines))
+    print(f"{len(done)} rows written")
+    return 1 if missing else 0
+
+
+def _row_set(line: str, names: dict[str, str]) -> str | None:
+    """The set a row of the table of totals is about, None for any other line."""
+    if not line.startswith("| "):
+        return None
+    label = line.split("|")[1].strip()
+    for public in ("public-realism", "public"):
+        if label.startswith(f"{public} ("):
+            return public
+    quoted = label.split("`")
+    return names.get(quoted[1]) if len(quoted) >= 3 else None
+
+
+def _row(label: str, before: dict[str, float], after: dict[str, float]) -> str:
+    def num(total: dict[str, float], key: str) -> str:
+        value = total.get(key)
+        return "-" if value is None else f"{value:.3f}"
+
+    return (
+        f"|{label}| {num(after, 'precision')} | {num(after, 'recall')} | {num(after, 'f1')}"
+        f" | {num(before, 'f1')} | {num(after, 'alignment_error_p90_m')} m"
+        f" ({num(before, 'alignment_error_p90_m')}) |\n"
+    )
+
+
 def kind_of(args: tuple[str, ...]) -> str:
     """The kind of a generated set, from its ``make_scenarios.py`` arguments: the cases it
     asks for (``every case`` without ``--cases``), and whether it changes the simulated
@@ -269,8 +324,12 @@ def main() -> int:
         "census", parents=[on_sets], help="census.py on each set of a run, and the counts pooled"
     )
     p_cen.add_argument("--all", action="store_true", help="every bundle and judged difference")
+    p_tab = sub.add_parser("table", help="two runs' totals into the README's table")
+    p_tab.add_argument("before")
+    p_tab.add_argument("after")
+    p_tab.add_argument("readme")
     args = parser.parse_args()
-    commands = {"run": run, "compare": compare, "census": census}
+    commands = {"run": run, "compare": compare, "census": census, "table": table}
     return commands[args.command](args)
 
 

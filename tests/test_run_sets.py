@@ -144,3 +144,42 @@ def test_census_of_a_set_the_run_does_not_hold_fails_and_says_so(
     assert out[0] == f"gen99        FAILED: no run of it in {run_dir}"
     assert out[1] == "== misses by the stage that lost them"
     assert not (run_dir / "census" / "gen99.json").exists()
+
+
+def test_table_writes_each_sets_row_and_names_what_it_cannot(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's rows of totals are found by the set's arguments in backticks (or the
+    public set's name), their numbers replaced and their labels kept; every other line is left
+    alone, and a set of the run with no row is named (exit status 1)."""
+
+    def total(f1: float, p90: float) -> dict[str, float]:
+        return {"precision": 0.9, "recall": 0.8, "f1": f1, "alignment_error_p90_m": p90}
+
+    for name, f1, p90 in (("a", 0.5, 0.04), ("b", 0.75, 0.03)):
+        (tmp_path / name).mkdir()
+        for set_name in ("public", "gen99", "drift123"):
+            doc = {"total": total(f1, p90), "role": "tuning"}
+            (tmp_path / name / f"{set_name}.json").write_text(json.dumps(doc))
+    readme = tmp_path / "README.md"
+    text = (
+        "Totals:\n\n| set | precision | recall | F1 | before | p90 |\n|---|---|---|---|---|---|\n"
+        "| public (6) | 1 | 1 | 1 | 1 | 0 m (0) |\n"
+        "| generated, `--count 30 --seed 99` (tuning) | 1 | 1 | 1 | 1 | 0 m (0) |\n"
+        "| `--count 31 --seed 99` | 1 | 1 | 1 | 1 | 0 m (0) |\n"
+    )
+    readme.write_text(text)
+    args = type(
+        "Args", (), {"before": str(tmp_path / "a"), "after": str(tmp_path / "b"), "readme": readme}
+    )
+    assert rs.table(args) == 1
+    lines = readme.read_text().splitlines()
+    assert lines[:4] == text.splitlines()[:4]
+    assert lines[4] == "| public (6) | 0.900 | 0.800 | 0.750 | 0.500 | 0.030 m (0.040) |"
+    assert lines[5] == (
+        "| generated, `--count 30 --seed 99` (tuning) | 0.900 | 0.800 | 0.750 | 0.500"
+        " | 0.030 m (0.040) |"
+    )
+    assert lines[6] == text.splitlines()[6]  # no set has these arguments
+    out = capsys.readouterr().out
+    assert "drift123: no row" in out and "2 rows written" in out
