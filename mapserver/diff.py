@@ -1062,6 +1062,150 @@ def _parts_standing(
     return (standing[0], standing[1]) if len(standing) >= 2 else None
 
 
+@dataclass(frozen=True)
+class LineRules:
+    """What :func:`thin_walls_seen_free` asks of a stretch of a thin wall, in metres: the
+    global map's walls with gaps up to ``2 * close_m`` bridged (a line drawn dotted) and
+    thinner than ``thick_m``; seen free by the local map, with no local wall within
+    ``clear_m`` (a square of that half-width), over at least ``min_length_m`` along the line
+    and no wider across it than ``thick_m`` and a cell (a straight line, no corner); for
+    ``side_share`` of its cells, a cell of the local map's floor and none of its walls within
+    ``side_m`` on each side of it (the robot saw through it, and drew no wall beside it); no
+    cell of the global map unknown ``unseen_m`` deep within twice that."""
+
+    close_m: float = 0.1
+    thick_m: float = 0.15
+    clear_m: float = 0.05
+    min_length_m: float = 0.6
+    side_m: float = 0.25
+    side_share: float = 0.5
+    unseen_m: float = 0.25
+
+
+def thin_walls_seen_free(
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    removed: BoolArray,
+    *,
+    resolution: float,
+    smaller_than_px: int,
+    rules: LineRules,
+) -> BoolArray:
+    """The cells of ``removed`` on stretches of thin walls of the global map that the local
+    map saw free along their length and through (``rules``), through ``removed``'s small
+    pieces (under ``smaller_than_px`` cells, 8-connected).
+
+    A thin wall drawn as a dotted line (a real map's partition seen from afar, a floor plan's
+    thin line on a coarser grid) leaves only its dots to the removed mask, and the tolerances
+    trim a gap's ends by 0.1-0.25 m each: what stays of a piece of wall 0.5-1.5 m long seen
+    gone is a few specks under the removed floor, though the robot saw the whole stretch of
+    the line free. Its line, bridged, is the wall's extent. Not: a stretch the local map
+    draws specks along (rays through a wall seen standing), one shorter than the length, a
+    corner, a line seen free with nothing seen behind it (rays grazing a wall) or with a local
+    wall drawn beside it (the wall seen displaced, its line free), a line whose
+    inside the global map never saw (a block's face drawn dotted). (H, W) bool, True only on
+    cells of ``removed``; the inputs are not modified. The evidence the removal needs is the
+    caller's to ask.
+    """
+    out = np.zeros(removed.shape, bool)
+    close_px = max(1, round(rules.close_m / resolution))
+    reach_px = max(1, round(2 * rules.unseen_m / resolution))
+    # A stretch that leaves the window is longer than the length inside it.
+    margin_px = math.ceil(rules.min_length_m / resolution) + close_px + reach_px + 2
+    for win, at in _small_pieces(removed, smaller_than_px, margin_px):
+        if out[win][at].any():
+            continue  # on a stretch a piece before it found
+        out[win] |= _lines_seen_free_in(
+            global_state[win], local_state[win], removed[win], at, resolution, rules
+        )
+    return out
+
+
+def _lines_seen_free_in(
+    g_state: NDArray[np.uint8],
+    l_state: NDArray[np.uint8],
+    removed: BoolArray,
+    at: tuple[NDArray[np.intp], NDArray[np.intp]],
+    resolution: float,
+    rules: LineRules,
+) -> BoolArray:
+    """The cells of ``removed`` on the stretches of thin wall seen free through the piece at
+    cells ``at`` ((rows, cols) in this window of both maps' states;
+    :func:`thin_walls_seen_free`)."""
+    out = np.zeros(removed.shape, bool)
+    occupied = (g_state == OCCUPIED).view(np.uint8)
+    close_px = max(1, round(rules.close_m / resolution))
+    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((2 * close_px + 1,) * 2, np.uint8))
+    thick_px = max(2, round(rules.thick_m / resolution))
+    thick = cv2.morphologyEx(closed, cv2.MORPH_OPEN, np.ones((thick_px,) * 2, np.uint8))
+    clear_px = max(1, round(rules.clear_m / resolution))
+    walls_seen = _grown_by((l_state == OCCUPIED).view(np.uint8), clear_px)
+    stretch = (closed > thick) & (l_state == FREE) & ~walls_seen
+    _, labels = cv2.connectedComponents(stretch.view(np.uint8), connectivity=8)
+    through = np.unique(labels[at])
+    through = through[through > 0]
+    if len(through) == 0:
+        return out
+    deep = _deep_unknown(g_state, rules.unseen_m / resolution)
+    reach_px = max(1, round(2 * rules.unseen_m / resolution))
+    floor = l_state == FREE
+    local_walls = l_state == OCCUPIED
+    side_px = max(1, round(rules.side_m / resolution))
+    for label in through:
+        own = labels == label
+        rows, cols = np.nonzero(own)
+        extent = _line_extent(rows, cols)
+        if extent is None:
+            continue
+        length_px, width_px, across = extent
+        if length_px * resolution < rules.min_length_m or width_px > thick_px + 1:
+            continue
+        if not all(
+            _seen_through(floor, local_walls, rows, cols, sign * across, side_px).mean()
+            >= rules.side_share
+            for sign in (1, -1)
+        ):
+            # Rays grazing the wall, nothing seen behind it; or the wall drawn beside its
+            # line (drift left over), seen free where it is drawn.
+            continue
+        if (deep & _grown_by(own.view(np.uint8), reach_px)).any():
+            continue  # a face of a structure whose inside the map never saw
+        out |= own & removed
+    return out
+
+
+def _seen_through(
+    floor: BoolArray,
+    walls: BoolArray,
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    across: NDArray[np.float64],
+    steps: int,
+) -> BoolArray:
+    """(N,) bool: for each cell, a cell of ``floor`` and none of ``walls`` within ``steps``
+    cells along the unit (row, col) direction ``across``."""
+    return any_along(floor, rows, cols, across[0], across[1], steps) & ~any_along(
+        walls, rows, cols, across[0], across[1], steps
+    )
+
+
+def _line_extent(
+    rows: NDArray[np.intp], cols: NDArray[np.intp]
+) -> tuple[float, float, NDArray[np.float64]] | None:
+    """The cells' extent along their main axis and across it, in cells (end to end, both
+    ends counted), and the unit (row, col) direction across; None for fewer than two cells."""
+    if len(rows) < 2:
+        return None
+    points = np.column_stack((rows, cols)).astype(np.float64)
+    centred = points - points.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    along, across = vectors[:, 1], vectors[:, 0]  # eigh: eigenvalues in ascending order
+    on_axis, off_axis = centred @ along, centred @ across
+    length = float(on_axis.max() - on_axis.min()) + 1
+    width = float(off_axis.max() - off_axis.min()) + 1
+    return length, width, across
+
+
 def _grown_by(mask: NDArray[np.uint8], px: int) -> BoolArray:
     """``mask`` (0/1 uint8) grown by ``px`` cells each way (a square), as bool."""
     if px <= 0:
@@ -1173,6 +1317,7 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
 
 __all__ = [
     "DiffMasks",
+    "LineRules",
     "distance_to",
     "drop_along_walls",
     "drop_small",
@@ -1182,4 +1327,5 @@ __all__ = [
     "offset_distances",
     "raw_differences",
     "removal_evidence",
+    "thin_walls_seen_free",
 ]

@@ -23,6 +23,7 @@ from mapserver.deform import warp_local
 from mapserver.diff import (
     CutRules,
     DiffMasks,
+    LineRules,
     _across_m,
     _deep_inside,
     drop_along_walls,
@@ -32,6 +33,7 @@ from mapserver.diff import (
     raw_differences,
     removal_evidence,
     small_structures_gone,
+    thin_walls_seen_free,
     walls_cut_through,
 )
 from mapserver.geometry import Transform2D
@@ -1169,3 +1171,80 @@ def test_a_piece_of_a_face_with_no_floor_behind_it_is_not_marked() -> None:
     g, loc = _partition()
     loc[52:, :] = UNKNOWN
     assert not _cut(g, loc, _trimmed(g.shape, slice(49, 51))).any()
+
+
+def _dotted(gap: slice = slice(40, 60)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A room 5 m x 5 m at 0.05 m split by a partition one cell thick (row 50) that the global
+    map draws dotted (every other cell), floor on both sides; the local map sees it standing
+    (drawn whole) but for the columns of ``gap`` (1 m by default), seen free. The removed mask:
+    what the tolerances leave of the gap's dots, the 3 dots 0.25 m or more from its ends."""
+    g = np.full((100, 100), FREE, np.uint8)
+    g[50, ::2] = OCCUPIED
+    loc = g.copy()
+    loc[50, :] = OCCUPIED
+    loc[50, gap] = FREE
+    removed = np.zeros(g.shape, bool)
+    removed[50, gap.start + 5 : gap.stop - 5] = g[50, gap.start + 5 : gap.stop - 5] == OCCUPIED
+    return g, loc, removed
+
+
+def _seen_free(g: np.ndarray, loc: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    return thin_walls_seen_free(
+        g, loc, removed, resolution=RES, smaller_than_px=8, rules=LineRules()
+    )
+
+
+def test_what_stays_of_a_dotted_wall_seen_free_is_marked() -> None:
+    """Each dot is a piece of its own under the floor, and the dotted line seen free over 1 m
+    (0.9 m of it clear of the local wall's ends) marks all five; a piece of 8 cells is no small
+    piece, and the usual floor judges it."""
+    g, loc, removed = _dotted()
+    g0, loc0, removed0 = g.copy(), loc.copy(), removed.copy()
+    out = _seen_free(g, loc, removed)
+    assert (g == g0).all() and (loc == loc0).all() and (removed == removed0).all()
+    assert removed.sum() == 5 and (out == removed).all()
+    solid = np.zeros(g.shape, bool)
+    solid[50, 46:54] = True
+    assert not _seen_free(g, loc, solid).any()
+
+
+def test_a_dotted_wall_seen_free_too_short_or_through_specks_is_not_marked() -> None:
+    """Not: a gap 0.6 m wide (0.5 m of it clear of the wall's ends, under the 0.6 m asked);
+    the line seen free through specks of the local map 0.25 m apart (rays through a wall seen
+    standing); a line 0.3 m thick (no thin wall: a block's face); the line seen free with the
+    local map unknown behind it, or with the wall drawn 0.15 m beside it; a corner, 0.7 m either way; a line whose inside the
+    global map never saw (unknown 0.25 m deep within 0.5 m of it), which 0.5 m of floor seen
+    behind it makes a partition again."""
+    g, loc, removed = _dotted(slice(40, 52))
+    assert removed.any() and not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted()
+    loc[50, 40:60:5] = OCCUPIED
+    assert not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted()
+    g[51:56, :] = OCCUPIED
+    assert not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted()
+    loc[51:, :] = UNKNOWN  # seen free, nothing seen behind it: rays grazing the wall
+    assert not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted()
+    loc[50, :] = FREE
+    loc[53, :] = OCCUPIED  # the wall drawn 0.15 m beside its line (drift left over)
+    loc[53, 45:55] = FREE  # with a gap where the piece is
+    assert not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted(slice(36, 51))  # the line's last 0.75 m seen free, then a corner
+    g[50, 51:] = FREE
+    loc[50, 51:] = FREE
+    g[51:65:2, 50] = OCCUPIED  # and 0.7 m of dotted line down from the corner, seen free
+    removed[:] = False
+    removed[50, 41:49] = g[50, 41:49] == OCCUPIED
+    assert removed.sum() == 4 and not _seen_free(g, loc, removed).any()
+    g[51:65, 50] = FREE  # no corner: the line's last 0.7 m clear of the local wall, its end
+    assert (_seen_free(g, loc, removed) == removed).all()
+    g, loc, removed = _dotted()
+    g[51:, :] = UNKNOWN
+    assert not _seen_free(g, loc, removed).any()
+    g, loc, removed = _dotted()
+    g[56:, :] = UNKNOWN  # 0.25 m of floor behind it, then never seen: still a face
+    assert not _seen_free(g, loc, removed).any()
+    g[56:61, :] = FREE  # 0.5 m of floor behind it: a partition
+    assert (_seen_free(g, loc, removed) == removed).all()
