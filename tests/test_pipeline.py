@@ -359,11 +359,14 @@ def test_a_small_structure_seen_gone_on_a_coarse_local_map_is_reported(
     assert [d.kind for d in found] == kinds
 
 
-def test_what_stays_of_a_gap_cut_through_a_partition_is_reported() -> None:
+def test_what_stays_of_a_gap_cut_through_a_partition_is_reported(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A partition 0.1 m thick between two rooms, seen standing either side of a gap cut
     through it: the 4 cells the end tolerance leaves of the gap (0.01 m2, under the removed
     floor of 8 cells) are reported, with their evidence; the same 4 cells where the partition
-    was seen gone all along are not."""
+    was seen gone all along are no cut (nothing stands either side), and are reported as a
+    stretch of a thin wall seen free (session 41), not without that rule."""
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     g = np.full((100, 100), FREE, np.uint8)
     g[50:52, :] = OCCUPIED
@@ -374,12 +377,62 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_reported() -> None:
     masks = diff_stage.DiffMasks(added=np.zeros_like(piece), removed=piece)
     config = Config()
     assert config.pipeline.diff.min_removed_cells > 4
-    for drawn, kinds in ((seen, ["removed"]), (np.where(g == OCCUPIED, FREE, g), [])):
+    gone = np.where(g == OCCUPIED, FREE, g)
+    no_line = diff_stage.LineRules(min_length_m=10.0)
+    for drawn, line_rules, kinds in (
+        (seen, pipeline._LINE_RULES, ["removed"]),
+        (seen, no_line, ["removed"]),
+        (gone, pipeline._LINE_RULES, ["removed"]),
+        (gone, no_line, []),
+    ):
         local = from_states(drawn.astype(np.uint8), 0.05, (0.0, 0.0, 0.0))
+        monkeypatch.setattr(pipeline, "_LINE_RULES", line_rules)
         found = pipeline._cluster_masks(
             masks, piece, grid, config, local, (g, local.state), 0.05, drifted=True
         )
         assert [d.kind for d in found] == kinds
+
+
+def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A partition one cell thick drawn as a zigzag of cells (a slanted line's staircase), its
+    last metre seen free by a 0.1 m local map after a drifting session: the 0.2 m end
+    tolerance leaves 16 work cells (4 local cells, under the removed floor of 8), too long a
+    wall for a small structure and one part standing only, no cut; reported as a stretch of
+    a thin wall seen free (diff.thin_walls_seen_free), and not without that rule."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    g = np.full((100, 100), FREE, np.uint8)
+    g[50, 0:60:2] = OCCUPIED
+    g[51, 1:60:2] = OCCUPIED
+    seen = g.copy()
+    seen[50:52, :40] = OCCUPIED  # drawn whole where it stands
+    seen[50:52, 40:60] = FREE
+    local = from_states(np.full((50, 50), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
+    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
+    config = Config()
+    masks, evidence = pipeline._diff_masks(
+        g,
+        g == OCCUPIED,
+        seen,
+        np.ones(g.shape, bool),
+        grid,
+        config,
+        local,
+        global_map,
+        drifted=True,
+    )
+    assert masks.removed.sum() == 16 < config.pipeline.diff.min_removed_cells * 4
+
+    def kinds() -> list[str]:
+        found = pipeline._cluster_masks(
+            masks, evidence, grid, config, local, (g, seen), 0.05, drifted=True
+        )
+        return [d.kind for d in found]
+
+    assert kinds() == ["removed"]
+    monkeypatch.setattr(pipeline, "_LINE_RULES", diff_stage.LineRules(min_length_m=10.0))
+    assert kinds() == []
 
 
 def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported() -> None:
