@@ -105,16 +105,18 @@ def _run_one(bench_set: BenchSet, run_dir: Path, config: str | None) -> tuple[bo
     return True, f"{bench_set.name:12s} {_line(document['total'])}"
 
 
-def _line(total: dict[str, float | None]) -> str:
-    def num(key: str) -> str:
-        value = total.get(key)
-        return "-" if value is None else f"{value:.3f}"
+def _num(total: dict[str, Any], key: str) -> str:
+    """A ratio or a distance of a set's totals to three decimals, ``-`` when it has none."""
+    value = total.get(key)
+    return "-" if value is None else f"{value:.3f}"
 
+
+def _line(total: dict[str, Any]) -> str:
     found = f"{total['matched']}/{total['observed']}"
     return (
-        f"P {num('precision')} R {num('recall')} F1 {num('f1')}"
+        f"P {_num(total, 'precision')} R {_num(total, 'recall')} F1 {_num(total, 'f1')}"
         f"  found {found:>8s}  FP {total['false_positive']:3d}"
-        f"  align p90 {num('alignment_error_p90_m')} m"
+        f"  align p90 {_num(total, 'alignment_error_p90_m')} m"
     )
 
 
@@ -245,8 +247,9 @@ def compare(args: argparse.Namespace) -> int:
 
 
 def table(args: argparse.Namespace) -> int:
-    """Rewrite the README's rows of totals from two runs; exit status 1 when a set of either
-    run has no row, or a row no set (each named)."""
+    """Rewrite the README's rows of totals from two runs; exit status 1 when a row's set is
+    missing from either run or a set of the second run has no row (each named). A row whose
+    arguments name no set of ``sets.tsv`` is left as it is."""
     before, after = _load(Path(args.before)), _load(Path(args.after))
     names = {" ".join(s.args): s.name for s in read_sets(Path(), public=False)}
     readme = Path(args.readme)
@@ -283,15 +286,11 @@ def _row_set(line: str, names: dict[str, str]) -> str | None:
     return names.get(quoted[1]) if len(quoted) >= 3 else None
 
 
-def _row(label: str, before: dict[str, float], after: dict[str, float]) -> str:
-    def num(total: dict[str, float], key: str) -> str:
-        value = total.get(key)
-        return "-" if value is None else f"{value:.3f}"
-
+def _row(label: str, before: dict[str, Any], after: dict[str, Any]) -> str:
     return (
-        f"|{label}| {num(after, 'precision')} | {num(after, 'recall')} | {num(after, 'f1')}"
-        f" | {num(before, 'f1')} | {num(after, 'alignment_error_p90_m')} m"
-        f" ({num(before, 'alignment_error_p90_m')}) |\n"
+        f"|{label}| {_num(after, 'precision')} | {_num(after, 'recall')} | {_num(after, 'f1')}"
+        f" | {_num(before, 'f1')} | {_num(after, 'alignment_error_p90_m')} m"
+        f" ({_num(before, 'alignment_error_p90_m')}) |\n"
     )
 
 

@@ -23,8 +23,11 @@ from mapserver.grid import (
     any_along,
     box_around,
     box_of_cells,
+    extent_along,
     grown,
+    main_axis,
     nonzero_cells,
+    square_to,
 )
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
@@ -1108,17 +1111,44 @@ def thin_walls_seen_free(
     caller's to ask.
     """
     out = np.zeros(removed.shape, bool)
-    close_px = max(1, round(rules.close_m / resolution))
-    reach_px = max(1, round(2 * rules.unseen_m / resolution))
+    px = _LinePx.of(rules, resolution)
     # A stretch that leaves the window is longer than the length inside it.
-    margin_px = math.ceil(rules.min_length_m / resolution) + close_px + reach_px + 2
+    margin_px = math.ceil(rules.min_length_m / resolution) + px.close + px.reach + 2
     for win, at in _small_pieces(removed, smaller_than_px, margin_px):
         if out[win][at].any():
             continue  # on a stretch a piece before it found
-        out[win] |= _lines_seen_free_in(
-            global_state[win], local_state[win], removed[win], at, resolution, rules
-        )
+        out[win] |= _lines_seen_free_in(global_state[win], local_state[win], removed[win], at, px)
     return out
+
+
+@dataclass(frozen=True)
+class _LinePx:
+    """:class:`LineRules` in cells of the work grid (``depth`` the unknown's, as a float), and
+    the length asked in metres, on cells of ``resolution``."""
+
+    close: int
+    thick: int
+    clear: int
+    side: int
+    reach: int
+    depth: float
+    min_length_m: float
+    resolution: float
+    side_share: float
+
+    @staticmethod
+    def of(rules: LineRules, resolution: float) -> _LinePx:
+        return _LinePx(
+            close=max(1, round(rules.close_m / resolution)),
+            thick=max(2, round(rules.thick_m / resolution)),
+            clear=max(1, round(rules.clear_m / resolution)),
+            side=max(1, round(rules.side_m / resolution)),
+            reach=max(1, round(2 * rules.unseen_m / resolution)),
+            depth=rules.unseen_m / resolution,
+            min_length_m=rules.min_length_m,
+            resolution=resolution,
+            side_share=rules.side_share,
+        )
 
 
 def _lines_seen_free_in(
@@ -1126,49 +1156,43 @@ def _lines_seen_free_in(
     l_state: NDArray[np.uint8],
     removed: BoolArray,
     at: tuple[NDArray[np.intp], NDArray[np.intp]],
-    resolution: float,
-    rules: LineRules,
+    px: _LinePx,
 ) -> BoolArray:
     """The cells of ``removed`` on the stretches of thin wall seen free through the piece at
     cells ``at`` ((rows, cols) in this window of both maps' states;
     :func:`thin_walls_seen_free`)."""
     out = np.zeros(removed.shape, bool)
     occupied = (g_state == OCCUPIED).view(np.uint8)
-    close_px = max(1, round(rules.close_m / resolution))
-    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((2 * close_px + 1,) * 2, np.uint8))
-    thick_px = max(2, round(rules.thick_m / resolution))
-    thick = cv2.morphologyEx(closed, cv2.MORPH_OPEN, np.ones((thick_px,) * 2, np.uint8))
-    clear_px = max(1, round(rules.clear_m / resolution))
-    walls_seen = _grown_by((l_state == OCCUPIED).view(np.uint8), clear_px)
-    stretch = (closed > thick) & (l_state == FREE) & ~walls_seen
+    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((2 * px.close + 1,) * 2, np.uint8))
+    thick = cv2.morphologyEx(closed, cv2.MORPH_OPEN, np.ones((px.thick,) * 2, np.uint8))
+    floor, local_walls = l_state == FREE, l_state == OCCUPIED
+    stretch = (closed > thick) & floor & ~_grown_by(local_walls.view(np.uint8), px.clear)
     _, labels = cv2.connectedComponents(stretch.view(np.uint8), connectivity=8)
     through = np.unique(labels[at])
     through = through[through > 0]
     if len(through) == 0:
         return out
-    deep = _deep_unknown(g_state, rules.unseen_m / resolution)
-    reach_px = max(1, round(2 * rules.unseen_m / resolution))
-    floor = l_state == FREE
-    local_walls = l_state == OCCUPIED
-    side_px = max(1, round(rules.side_m / resolution))
+    deep = _deep_unknown(g_state, px.depth)
     for label in through:
         own = labels == label
         rows, cols = np.nonzero(own)
-        extent = _line_extent(rows, cols)
-        if extent is None:
-            continue
-        length_px, width_px, across = extent
-        if length_px * resolution < rules.min_length_m or width_px > thick_px + 1:
+        points = np.column_stack((rows, cols)).astype(np.float64)
+        centre, axis = main_axis(points)
+        across = square_to(axis)
+        # Both counted in cells (end to end, both ends in): a row of cells is one wide.
+        length_px = extent_along(points, centre, axis) + 1
+        width_px = extent_along(points, centre, across) + 1
+        if length_px * px.resolution < px.min_length_m or width_px > px.thick + 1:
             continue
         if not all(
-            _seen_through(floor, local_walls, rows, cols, sign * across, side_px).mean()
-            >= rules.side_share
+            _seen_through(floor, local_walls, rows, cols, sign * across, px.side).mean()
+            >= px.side_share
             for sign in (1, -1)
         ):
             # Rays grazing the wall, nothing seen behind it; or the wall drawn beside its
             # line (drift left over), seen free where it is drawn.
             continue
-        if (deep & _grown_by(own.view(np.uint8), reach_px)).any():
+        if (deep & _grown_by(own.view(np.uint8), px.reach)).any():
             continue  # a face of a structure whose inside the map never saw
         out |= own & removed
     return out
@@ -1187,23 +1211,6 @@ def _seen_through(
     return any_along(floor, rows, cols, across[0], across[1], steps) & ~any_along(
         walls, rows, cols, across[0], across[1], steps
     )
-
-
-def _line_extent(
-    rows: NDArray[np.intp], cols: NDArray[np.intp]
-) -> tuple[float, float, NDArray[np.float64]] | None:
-    """The cells' extent along their main axis and across it, in cells (end to end, both
-    ends counted), and the unit (row, col) direction across; None for fewer than two cells."""
-    if len(rows) < 2:
-        return None
-    points = np.column_stack((rows, cols)).astype(np.float64)
-    centred = points - points.mean(axis=0)
-    _, vectors = np.linalg.eigh(centred.T @ centred)
-    along, across = vectors[:, 1], vectors[:, 0]  # eigh: eigenvalues in ascending order
-    on_axis, off_axis = centred @ along, centred @ across
-    length = float(on_axis.max() - on_axis.min()) + 1
-    width = float(off_axis.max() - off_axis.min()) + 1
-    return length, width, across
 
 
 def _grown_by(mask: NDArray[np.uint8], px: int) -> BoolArray:

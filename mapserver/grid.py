@@ -256,6 +256,26 @@ def any_along(
     return found
 
 
+def main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The centre of ``points`` ((N, 2), at least one) and the unit direction they spread most
+    along (its sign, and for points spread evenly the direction itself, arbitrary)."""
+    centre = points.mean(axis=0)
+    return centre, np.linalg.svd(points - centre, full_matrices=False)[2][0]
+
+
+def extent_along(
+    points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
+) -> float:
+    """How far ``points`` ((N, 2), at least one) reach along ``axis`` (in their own units)."""
+    along = (points - centre) @ axis
+    return float(along.max() - along.min())
+
+
+def square_to(axis: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The unit direction square to ``axis`` (row, col)."""
+    return np.array([axis[1], -axis[0]])
+
+
 def densify(polyline: NDArray[np.float64], step: float) -> NDArray[np.float64]:
     """The points of ``polyline`` (N, 2) and, on each leg, points at most ``step`` apart (in
     its own units): its vertices kept, its end exact."""

@@ -596,25 +596,20 @@ def _cluster_masks(
             clear_m=_SMALL_CLEAR_M,
             unseen_m=_SMALL_UNSEEN_M,
         )
-    # A gap cut through a partition, trimmed by the end tolerance to a few cells (_CUT_RULES).
-    cut = diff_stage.walls_cut_through(
-        states[0],
-        states[1],
-        masks.removed,
-        resolution=grid.resolution,
-        smaller_than_px=floor_px,
-        rules=_CUT_RULES,
-    )
-    whole = cut if whole is None else whole | cut
-    # A stretch of a thin wall seen free, its dots and trimmed ends under the floor (_LINE_RULES).
-    whole |= diff_stage.thin_walls_seen_free(
-        states[0],
-        states[1],
-        masks.removed,
-        resolution=grid.resolution,
-        smaller_than_px=floor_px,
-        rules=_LINE_RULES,
-    )
+    # A gap cut through a partition, trimmed by the end tolerance to a few cells (_CUT_RULES);
+    # a stretch of a thin wall seen free, its dots and trimmed ends under the floor (_LINE_RULES).
+    for part_of_a_wall in (
+        partial(diff_stage.walls_cut_through, rules=_CUT_RULES),
+        partial(diff_stage.thin_walls_seen_free, rules=_LINE_RULES),
+    ):
+        marked = part_of_a_wall(
+            states[0],
+            states[1],
+            masks.removed,
+            resolution=grid.resolution,
+            smaller_than_px=floor_px,
+        )
+        whole = marked if whole is None else whole | marked
     found = []
     for kind, mask, cells, floor_m2, evidence, whole_of in (
         ("added", masks.added, d.min_local_cells, added_floor_m2, None, None),

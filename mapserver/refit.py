@@ -34,7 +34,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, within
-from mapserver.grid import any_along, box_of_cells, nonzero_cells
+from mapserver.grid import (
+    any_along,
+    box_of_cells,
+    extent_along,
+    main_axis,
+    nonzero_cells,
+    square_to,
+)
 from mapserver.maps import FREE, OCCUPIED
 
 BoolArray = NDArray[np.bool_]
@@ -205,14 +212,14 @@ def ghost_of_wall(
     centre, axis = _line_of(
         own_pts, pts, resolution=resolution, min_length_m=min_length_m, max_width_m=max_width_m
     )
-    normal = _across(axis)
+    normal = square_to(axis)
     on_line = np.abs((pts - centre) @ normal) * resolution <= max_width_m
     pr, pc, pts = pr[on_line], pc[on_line], pts[on_line]
     if len(pr) < 3:
         return False
     # Long enough to be a stretch of wall.
     centre = pts.mean(axis=0)
-    if _extent(pts, centre, axis) * resolution < min_length_m:
+    if extent_along(pts, centre, axis) * resolution < min_length_m:
         return False
     # The difference itself a piece of that line, thin across it (a wall seen again is one
     # line of hits; a box or a column beside a wall seen twice has a depth of its own).
@@ -501,10 +508,10 @@ def band_in_structure(
     inner = _around(rows, cols, box, square) & (depth > cv2.dilate(own, square))
     walled = inner & (cv2.dilate((local_state[box] == OCCUPIED).view(np.uint8), square) > 0)
     points = cells.astype(np.float64)
-    centre, axis = _main_axis(points)
+    centre, axis = main_axis(points)
     return Band(
         min(float(depth[r, c].max()), margin) * resolution,
-        (_extent(points, centre, axis) + 1.0) * resolution,
+        (extent_along(points, centre, axis) + 1.0) * resolution,
         int(np.count_nonzero(inner)),
         int(np.count_nonzero(walled)),
     )
@@ -544,19 +551,14 @@ def _line_of(
     points within ``max_width_m / 2`` of the line through it that holds the most of them. A line
     fitted to all the points would be turned and thickened by any other obstacle among them (a
     box a metre off), and might miss the difference."""
-    centre, axis = _main_axis(own)
+    centre, axis = main_axis(own)
     if (
-        _extent(own, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE
+        extent_along(own, centre, axis) * resolution < min_length_m * _OWN_AXIS_SHARE
         and _aspect(own, centre, axis) < _OWN_AXIS_ASPECT
     ):
         held = _best_line_through(points, centre, half_width=max_width_m / 2 / resolution)
-        centre, axis = _main_axis(points[held])
+        centre, axis = main_axis(points[held])
     return centre, axis
-
-
-def _across(axis: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The unit direction square to ``axis`` (row, col)."""
-    return np.array([axis[1], -axis[0]])
 
 
 def _best_line_through(
@@ -571,28 +573,15 @@ def _best_line_through(
     return np.asarray(within[:, int(np.argmax(within.sum(axis=0)))])
 
 
-def _extent(
-    points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
-) -> float:
-    """How far ``points`` ((N, 2), at least one) reach along ``axis`` (in their own units)."""
-    along = (points - centre) @ axis
-    return float(along.max() - along.min())
-
-
 def _aspect(
     points: NDArray[np.float64], centre: NDArray[np.float64], axis: NDArray[np.float64]
 ) -> float:
     """How many times longer than wide ``points`` ((N, 2), cells) are along ``axis``: their
     extent along it over their extent across it, each counted in cells (one more than the
     span between centres), so that a single row of cells has a width of one."""
-    return (_extent(points, centre, axis) + 1.0) / (_extent(points, centre, _across(axis)) + 1.0)
-
-
-def _main_axis(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The centre of ``points`` ((N, 2), at least one) and the unit direction they spread most
-    along (its sign, and for points spread evenly the direction itself, arbitrary)."""
-    centre = points.mean(axis=0)
-    return centre, np.linalg.svd(points - centre, full_matrices=False)[2][0]
+    return (extent_along(points, centre, axis) + 1.0) / (
+        extent_along(points, centre, square_to(axis)) + 1.0
+    )
 
 
 def _window(
@@ -672,7 +661,7 @@ def line_through_wall(
     centre, axis = _line_of(
         own, pts, resolution=resolution, min_length_m=_LINE_LENGTH_M, max_width_m=2 * max_width_m
     )
-    normal = _across(axis)
+    normal = square_to(axis)
     width_px, gap_px = max_width_m / resolution, max_gap_m / resolution
     # The local line, as far along it as it runs from the difference's own span without a gap
     # wider than max_gap_m between its cells.
