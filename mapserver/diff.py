@@ -1173,6 +1173,7 @@ def _lines_seen_free_in(
     if len(through) == 0:
         return out
     deep = _deep_unknown(g_state, px.depth)
+    beside = floor & (closed == 0)
     for label in through:
         own = labels == label
         rows, cols = np.nonzero(own)
@@ -1184,8 +1185,11 @@ def _lines_seen_free_in(
         width_px = extent_along(points, centre, across) + 1
         if length_px * px.resolution < px.min_length_m or width_px > px.thick + 1:
             continue
+        # Beside the line, not on it: from a cell on one edge the far side is the line's
+        # width across.
+        steps = px.side + round(width_px) - 1
         if not all(
-            _seen_through(floor, local_walls, rows, cols, sign * across, px.side).mean()
+            _seen_through(beside, local_walls, rows, cols, sign * across, steps).mean()
             >= px.side_share
             for sign in (1, -1)
         ):

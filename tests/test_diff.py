@@ -1208,6 +1208,21 @@ def test_what_stays_of_a_dotted_wall_seen_free_is_marked() -> None:
     assert not _seen_free(g, loc, solid).any()
 
 
+def test_a_dotted_wall_two_cells_thick_is_seen_through_beside_it_not_on_it() -> None:
+    """The partition drawn two cells thick (rows 50 and 51), dotted, seen free over 1 m: floor
+    on both sides marks its dots; the local map unknown behind it does not, though the line's
+    own second row, seen free, lies one cell across from its first."""
+    g, loc, removed = _dotted()
+    g[51, ::2] = OCCUPIED
+    loc[51, :] = OCCUPIED
+    loc[51, 40:60] = FREE
+    removed[51, 45:55] = g[51, 45:55] == OCCUPIED
+    assert removed.sum() == 10
+    assert (_seen_free(g, loc, removed) == removed).all()
+    loc[52:, :] = UNKNOWN
+    assert not _seen_free(g, loc, removed).any()
+
+
 def test_a_dotted_wall_seen_free_too_short_or_through_specks_is_not_marked() -> None:
     """Not: a gap 0.6 m wide (0.5 m of it clear of the wall's ends, under the 0.6 m asked);
     the line seen free through specks of the local map 0.25 m apart (rays through a wall seen

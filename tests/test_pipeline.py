@@ -396,11 +396,13 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_reported(
 def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A partition one cell thick drawn as a zigzag of cells (a slanted line's staircase), its
-    last metre seen free by a 0.1 m local map after a drifting session: the 0.2 m end
-    tolerance leaves 16 work cells (4 local cells, under the removed floor of 8), too long a
-    wall for a small structure and one part standing only, no cut; reported as a stretch of
-    a thin wall seen free (diff.thin_walls_seen_free), and not without that rule."""
+    """A partition drawn as a zigzag of cells over two rows (a slanted line's staircase), its
+    last metre seen free after a drifting session by a session whose local map has 0.1 m
+    cells (the states here drawn on the 0.05 m work grid): the 0.2 m end tolerance leaves
+    16 work cells (4 local cells, under the removed floor of 8), too long a wall for a small
+    structure and one part standing only, no cut; reported as a stretch of a thin wall seen
+    free (diff.thin_walls_seen_free), and not without that rule. (What the rule asks beside
+    the line is tested in test_diff.)"""
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     g = np.full((100, 100), FREE, np.uint8)
     g[50, 0:60:2] = OCCUPIED
