@@ -1112,12 +1112,31 @@ def thin_walls_seen_free(
     """
     out = np.zeros(removed.shape, bool)
     px = _LinePx.of(rules, resolution)
-    # A stretch that leaves the window is longer than the length inside it.
-    margin_px = math.ceil(rules.min_length_m / resolution) + px.close + px.reach + 2
-    for win, at in _small_pieces(removed, smaller_than_px, margin_px):
-        if out[win][at].any():
-            continue  # on a stretch a piece before it found
-        out[win] |= _lines_seen_free_in(global_state[win], local_state[win], removed[win], at, px)
+    small = _small_mask(removed, smaller_than_px)
+    # One window for all the small pieces (each stretch measured once, whole, whatever the
+    # number of dots on it), grown so that a stretch through a piece at its edge is whole in
+    # it, and the side and unknown rules around that stretch too.
+    margin_px = math.ceil(rules.min_length_m / resolution) + px.close + px.around + 2
+    win = box_around(small, margin_px)
+    if win is not None:
+        out[win] = _lines_seen_free_in(
+            global_state[win], local_state[win], removed[win], small[win], px
+        )
+    return out
+
+
+def _small_mask(removed: BoolArray, smaller_than_px: int) -> BoolArray:
+    """The cells of ``removed``'s pieces (8-connected) under ``smaller_than_px`` cells."""
+    out = np.zeros(removed.shape, bool)
+    box = box_around(removed, 0)
+    if box is None:
+        return out
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(
+        removed[box].view(np.uint8), connectivity=8
+    )
+    keep = stats[:, cv2.CC_STAT_AREA] < smaller_than_px
+    keep[0] = False
+    out[box] = keep[labels]
     return out
 
 
@@ -1135,6 +1154,11 @@ class _LinePx:
     min_length_m: float
     resolution: float
     side_share: float
+
+    @property
+    def around(self) -> int:
+        """How far from a stretch its rules look: across it, and for the unknown."""
+        return max(self.side + self.thick, self.reach)
 
     @staticmethod
     def of(rules: LineRules, resolution: float) -> _LinePx:
@@ -1155,27 +1179,29 @@ def _lines_seen_free_in(
     g_state: NDArray[np.uint8],
     l_state: NDArray[np.uint8],
     removed: BoolArray,
-    at: tuple[NDArray[np.intp], NDArray[np.intp]],
+    small: BoolArray,
     px: _LinePx,
 ) -> BoolArray:
-    """The cells of ``removed`` on the stretches of thin wall seen free through the piece at
-    cells ``at`` ((rows, cols) in this window of both maps' states;
-    :func:`thin_walls_seen_free`)."""
+    """The cells of ``removed`` on the stretches of thin wall seen free through its small
+    pieces ``small``, in this window of both maps' states (:func:`thin_walls_seen_free`)."""
     out = np.zeros(removed.shape, bool)
     occupied = (g_state == OCCUPIED).view(np.uint8)
     closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((2 * px.close + 1,) * 2, np.uint8))
     thick = cv2.morphologyEx(closed, cv2.MORPH_OPEN, np.ones((px.thick,) * 2, np.uint8))
     floor, local_walls = l_state == FREE, l_state == OCCUPIED
     stretch = (closed > thick) & floor & ~_grown_by(local_walls.view(np.uint8), px.clear)
-    _, labels = cv2.connectedComponents(stretch.view(np.uint8), connectivity=8)
-    through = np.unique(labels[at])
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(stretch.view(np.uint8), connectivity=8)
+    through = np.unique(labels[small])
     through = through[through > 0]
     if len(through) == 0:
         return out
     deep = _deep_unknown(g_state, px.depth)
     beside = floor & (closed == 0)
     for label in through:
-        own = labels == label
+        x, y, w, h = (int(v) for v in stats[label, :4])
+        # The stretch's box, and around it as far as its rules look.
+        box = grown((slice(y, y + h), slice(x, x + w)), px.around, removed.shape)
+        own = labels[box] == label
         rows, cols = np.nonzero(own)
         points = np.column_stack((rows, cols)).astype(np.float64)
         centre, axis = main_axis(points)
@@ -1189,16 +1215,16 @@ def _lines_seen_free_in(
         # width across.
         steps = px.side + round(width_px) - 1
         if not all(
-            _seen_through(beside, local_walls, rows, cols, sign * across, steps).mean()
+            _seen_through(beside[box], local_walls[box], rows, cols, sign * across, steps).mean()
             >= px.side_share
             for sign in (1, -1)
         ):
             # Rays grazing the wall, nothing seen behind it; or the wall drawn beside its
             # line (drift left over), seen free where it is drawn.
             continue
-        if (deep & _grown_by(own.view(np.uint8), px.reach)).any():
+        if (deep[box] & _grown_by(own.view(np.uint8), px.reach)).any():
             continue  # a face of a structure whose inside the map never saw
-        out |= own & removed
+        out[box] |= own & removed[box]
     return out
 
 

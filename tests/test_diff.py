@@ -1223,6 +1223,19 @@ def test_a_dotted_wall_two_cells_thick_is_seen_through_beside_it_not_on_it() -> 
     assert not _seen_free(g, loc, removed).any()
 
 
+def test_a_piece_on_two_stretches_marks_both() -> None:
+    """A piece of 5 cells (columns 59-63) split by a speck of the local map (column 61) lies
+    on two stretches seen free, 1 m each: the first, through the gap's dots, marks its cell
+    59, and the second, with no other piece on it, still marks its cell 63."""
+    g, loc, removed = _dotted()
+    g[50, 59:64] = OCCUPIED
+    loc[50, 60:83] = FREE
+    loc[50, 61] = OCCUPIED
+    removed[50, 59:64] = True
+    out = _seen_free(g, loc, removed)
+    assert out[50, 59] and out[50, 63]
+
+
 def test_a_dotted_wall_seen_free_too_short_or_through_specks_is_not_marked() -> None:
     """Not: a gap 0.6 m wide (0.5 m of it clear of the wall's ends, under the 0.6 m asked);
     the line seen free through specks of the local map 0.25 m apart (rays through a wall seen
