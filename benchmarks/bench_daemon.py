@@ -240,7 +240,8 @@ def main() -> int:
             problems.append(f"{bundle_id}: not byte-identical to the upload")
 
     # -- numbers ----------------------------------------------------------------------------
-    latencies, spanning = [], []
+    latencies: list[float] = []
+    spanning: list[float] = []
     for upload in run.uploads:
         result = outbox / upload.bundle_id / "result.yaml"
         if not result.exists():

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_speed
 
 from mapserver.config import Config, UpdateConfig
-from mapserver.fleet import store as fleet_store
+from mapserver.fleet import evidence as fleet_evidence
 from mapserver.fleet.store import FleetStore
 from mapserver.pipeline import process_bundle
 
@@ -91,14 +91,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             return version
 
         store._publish_state = timed_publish  # type: ignore[method-assign]
-        real_add = fleet_store.evidence.add_deltas
+        real_add = fleet_evidence.add_deltas
 
         def counted(*a: object, **kw: object) -> list[tuple[int, int]]:
-            touched = real_add(*a, **kw)  # type: ignore[arg-type]
+            touched: list[tuple[int, int]] = real_add(*a, **kw)  # type: ignore[arg-type]
             tiles.append(len(touched))
             return touched
 
-        fleet_store.evidence.add_deltas = counted  # type: ignore[assignment]
+        fleet_evidence.add_deltas = counted
         for i in range(args.bundles):
             source = data.pool[i % len(data.pool)]
             stamp = (t0 + timedelta(hours=args.hours * i)).isoformat().replace("+00:00", "Z")

@@ -154,7 +154,7 @@ def _recipe_stamp() -> str:
 
 
 def _session(
-    world: OccupancyMap, seed: int, route_m: float, changes: Sequence[int], **drift: float
+    world: OccupancyMap, seed: int, route_m: float, changes: Sequence[int], **drift: Any
 ) -> Any:
     n_added, n_removed, n_people = changes
     return synth.make_scenario(

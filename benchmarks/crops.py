@@ -106,10 +106,10 @@ def crop(
             corners = np.rint(grid.to_pixel(change.polygon_xy)).astype(np.int32)
             colour = _OUTLINE.get(change.kind, _OTHER_OUTLINE)
             cv2.polylines(drawn, [corners], True, colour, 1)
-        part = drawn[r0:r1, c0:c1]
-        if not part.size:  # off the grid: one grey cell
-            part = np.full((1, 1, 3), 160, np.uint8)
-        part = cv2.resize(part, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+        crop = drawn[r0:r1, c0:c1]
+        if not crop.size:  # off the grid: one grey cell
+            crop = np.full((1, 1, 3), 160, np.uint8)
+        part = cv2.resize(crop, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
         out += [part, np.full((part.shape[0], _GAP_PX, 3), 255, np.uint8)]
     return np.hstack(out[:-1])
 

@@ -73,7 +73,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -694,7 +694,7 @@ def _walker_changes(
     world_free = np.zeros(len(wc), bool)
     world_free[inside] = clear_m[wr[inside], wc[inside]] > 3 * local.resolution
 
-    out = []
+    out: list[tuple[synth.Change, int]] = []
     cell = 0.05
     for walker in walkers:
         active = (t_scan >= walker.t_start) & (t_scan <= walker.t_end)
@@ -829,7 +829,8 @@ def plan_params(plan: Plan) -> Params:
     if plan.mislocalize_m or plan.mislocalize_deg:
         params["mislocalize_m"] = plan.mislocalize_m
         params["mislocalize_deg"] = plan.mislocalize_deg
-    return _plain(params)
+    plain: dict[str, Any] = _plain(params)
+    return plain
 
 
 def build_scenario(plan: Plan, out_dir: Path) -> Params:
@@ -1040,7 +1041,7 @@ def _parse_overrides(items: Sequence[str], parser: argparse.ArgumentParser) -> P
 
 
 def checked_cases(
-    parser: argparse.ArgumentParser, args: argparse.Namespace, known: Sequence[str]
+    parser: argparse.ArgumentParser, args: argparse.Namespace, known: Collection[str]
 ) -> list[str]:
     """``--cases`` as a list, once ``--cases``, ``--count`` and the output folder are checked
     (``parser.error`` otherwise): shared by this script and ``make_histories.py``."""

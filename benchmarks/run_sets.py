@@ -191,15 +191,15 @@ def _chosen(args: argparse.Namespace) -> list[BenchSet]:
     ]
 
 
-def _load(run_dir: Path) -> dict[str, dict[str, object]]:
+def _load(run_dir: Path) -> dict[str, dict[str, Any]]:
     return {p.stem: json.loads(p.read_text()) for p in sorted(run_dir.glob("*.json"))}
 
 
-def _sum(docs: list[dict[str, object]]) -> dict[str, float]:
+def _sum(docs: list[dict[str, Any]]) -> dict[str, float]:
     """The sets' counts added up, and precision, recall and F1 of the sums (contract section
     4, as ``mapserver.scoring`` computes them for one set)."""
     keys = ("matched", "observed", "correct", "false_positive")
-    counts = {k: sum(d["total"][k] for d in docs) for k in keys}  # type: ignore[index]
+    counts = {k: sum(d["total"][k] for d in docs) for k in keys}
     precision = precision_from_counts(counts["correct"], counts["false_positive"])
     recall = recall_from_counts(counts["matched"], counts["observed"])
     totals = {k: float(v) for k, v in counts.items()}
@@ -214,7 +214,7 @@ def compare(args: argparse.Namespace) -> int:
         print(f"{name:12s} only in {args.before if name in before else args.after}: not compared")
     same = 0
     for name in common:
-        b, a = before[name]["total"], after[name]["total"]  # type: ignore[index]
+        b, a = before[name]["total"], after[name]["total"]
         if (b["matched"], b["false_positive"]) == (a["matched"], a["false_positive"]):
             same += 1
             continue
@@ -264,7 +264,7 @@ def table(args: argparse.Namespace) -> int:
             missing += 1
             continue
         label = line.split("|")[1]
-        lines[i] = _row(label, before[name]["total"], after[name]["total"])  # type: ignore[arg-type]
+        lines[i] = _row(label, before[name]["total"], after[name]["total"])
         done.add(name)
     for name in sorted(set(after) - done):
         print(f"{name}: no row in {readme}")
