@@ -113,6 +113,7 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),
     "left out": (piecewise, "left_out_pass_near", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
+    "in front": (refit_stage, "face_drawn_in_front", lambda value, _: bool(value)),
     "through": (refit_stage, "line_through_wall", lambda value, _: bool(value)),
 }
 CHECKS = tuple(_CHECKS)

@@ -1030,6 +1030,14 @@ def _refit(
             min_length_m=_GHOST_MIN_LENGTH_M,
         ):
             return True
+        if diff.kind == "added" and refit_stage.face_drawn_in_front(
+            diff.cells,
+            global_walls,
+            local_state,
+            resolution=grid.resolution,
+            tolerance_m=d.tolerance_m,
+        ):
+            return True
         return diff.kind == "added" and refit_stage.line_through_wall(
             diff.cells,
             local_walls,

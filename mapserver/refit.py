@@ -608,6 +608,107 @@ def _turned(
 # The length at which line_through_wall takes a difference's own main axis for its line (a
 # shorter, compact one: the line through it holding the most local walls), as ghost_of_wall
 # does by default.
+def face_drawn_in_front(
+    cells: NDArray[np.intp],
+    global_walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    tolerance_m: float,
+    max_offset_m: float = 1.5,
+    max_between_free: float = 0.3,
+    min_length_m: float = 0.5,
+    max_width_m: float = 0.25,
+    share: float = 0.8,
+    ends_m: float = 0.5,
+) -> bool:
+    """Whether the added difference of ``cells`` ((N, 2) row, col) is a face of a global wall
+    drawn in front of where it stands (drift left over in its piece), with nothing seen behind
+    it: a line at least ``min_length_m`` long and no wider than ``max_width_m`` (5-95 %
+    spread) that, ``share`` of its cells, has a global wall (``global_walls``) within
+    ``max_offset_m`` straight across it on one side, the floor between unseen by the local map
+    (``local_state``: no more than ``max_between_free`` of it seen free) and that wall not
+    drawn by it within ``tolerance_m``; and
+    past neither of its ends (``ends_m`` beyond the tolerance) that face drawn in place over
+    half that length where it goes on.
+
+    An obstacle set in front of a wall hides the wall behind it too, but only its own length of
+    it: past its ends the rays reach the wall, seen where it stands. A face drawn displaced has
+    no such ends: what continues it is displaced the same way, or is a corner.
+    """
+    if len(cells) < 3:
+        return False
+    pts = cells.astype(np.float64)
+    centre, axis = main_axis(pts)
+    if (extent_along(pts, centre, axis) + 1) * resolution < min_length_m:
+        return False
+    normal = square_to(axis)
+    lo, hi = np.percentile((pts - centre) @ normal, [5, 95])
+    if float(hi - lo) * resolution > max_width_m:
+        return False
+    h, w = global_walls.shape
+    steps = max(1, round(max_offset_m / resolution))
+    tol_px = max(1, round(tolerance_m / resolution))
+
+    def cell(r: NDArray[np.float64], c: NDArray[np.float64]) -> tuple[NDArray[np.intp], ...]:
+        return (
+            np.clip(np.rint(r), 0, h - 1).astype(np.intp),
+            np.clip(np.rint(c), 0, w - 1).astype(np.intp),
+        )
+
+    def drawn_near(r: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Per point: a local wall within the tolerance (a square)."""
+        out = np.zeros(len(r), bool)
+        for dr in range(-tol_px, tol_px + 1):
+            for dc in range(-tol_px, tol_px + 1):
+                out |= local_state[cell(r + dr, c + dc)] == OCCUPIED
+        return out
+
+    for sign in (1.0, -1.0):
+        d = sign * normal
+        hit = np.zeros(len(pts), np.intp)  # steps to the wall, 0: none within reach
+        free = np.zeros(len(pts), np.intp)  # cells seen free on the way there
+        for k in range(1, steps + 1):
+            at = cell(pts[:, 0] + k * d[0], pts[:, 1] + k * d[1])
+            new = (hit == 0) & global_walls[at]
+            hit[new] = k
+            free += (hit == 0) & (local_state[at] == FREE)
+        found = hit > 0
+        if found.mean() < share:
+            continue
+        # The floor between unseen (a cell seen free behind the face's gaps, drawn dotted, or
+        # a few).
+        unseen = found & (free <= np.maximum(1, max_between_free * (hit - 1)))
+        if unseen.sum() < share * len(pts):
+            continue  # the floor between seen free: the robot looked behind it
+        wall = pts[found] + hit[found, None] * d
+        if drawn_near(wall[:, 0], wall[:, 1]).mean() > 1 - share:
+            continue  # the wall drawn where it stands: this is something in front of it
+        offset = float(np.median(hit[found]))
+        along = (pts - centre) @ axis
+        # Past each end, clear of the tolerance around it: where the face goes on, drawn
+        # along it (within the tolerance across it: a corner's other face, drawn, crosses its
+        # line in a cell or two), over ``ends_m`` / 2 of it at least.
+        past = np.arange(tol_px + 1, tol_px + 1 + max(1, round(ends_m / resolution)))
+        enough = max(3, round(ends_m / 2 / resolution))
+        for end, direction in ((along.max(), 1.0), (along.min(), -1.0)):
+            t = end + direction * past
+            r = centre[0] + t * axis[0] + offset * d[0]
+            c = centre[1] + t * axis[1] + offset * d[1]
+            on = np.zeros(len(t), bool)
+            drawn = np.zeros(len(t), bool)
+            for k in range(-tol_px, tol_px + 1):
+                at = cell(r + k * d[0], c + k * d[1])
+                if abs(k) <= 1:
+                    on |= global_walls[at]
+                drawn |= local_state[at] == OCCUPIED
+            if np.count_nonzero(on & drawn) >= enough:
+                break  # the face seen in place past an end
+        else:
+            return True
+    return False
+
+
 _LINE_LENGTH_M = 1.5
 
 
@@ -740,4 +841,10 @@ def _across_near(
     return np.asarray(d[(d**2).sum(axis=1) <= radius**2] @ normal)
 
 
-__all__ = ["explained_by_refit", "floor_seen_share", "ghost_of_wall", "line_through_wall"]
+__all__ = [
+    "explained_by_refit",
+    "face_drawn_in_front",
+    "floor_seen_share",
+    "ghost_of_wall",
+    "line_through_wall",
+]
