@@ -16,7 +16,7 @@ gets the stage that lost it:
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
   ``pipeline._refit`` asks them (``floor``, ``faces``, ``band``, ``refit``, ``pass``, ``left out``,
-  ``ghost``, ``through``);
+  ``ghost``, ``in front``, ``through``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 

@@ -952,8 +952,10 @@ def _refit(
     in pieces, for a removed one a long shallow band along a face walled inside by the local
     face (that face seen displaced, :func:`_face_displaced`), nor for a removed one a piece
     left out of the comparison whose run came near it (``_LEFT_OUT_NEAR_RATIO``: the
-    map there may be that pass's drawing), nor for an added one a straight local line that
-    runs on through a wall the local map shows standing (a wall drawn at a heading error,
+    map there may be that pass's drawing), nor for an added one a face of a global wall drawn
+    in front of where it stands with nothing seen behind it
+    (:func:`mapserver.refit.face_drawn_in_front`), nor a straight local line that runs on
+    through a wall the local map shows standing (a wall drawn at a heading error,
     :func:`mapserver.refit.line_through_wall`). ``reach_m()``: how far from its route the robot
     saw anything, asked when a fold check needs it."""
     d = config.pipeline.diff
@@ -1030,6 +1032,9 @@ def _refit(
             min_length_m=_GHOST_MIN_LENGTH_M,
         ):
             return True
+        # Session 42 (s20_1303's gen-10: a block's face drawn 1.1-1.4 m in front of itself by a
+        # 20 m lidar's pass, its inside unseen, three false additions along it): over the 57
+        # generated sets, 7 false positives fewer (4 of them held out), no change lost.
         if diff.kind == "added" and refit_stage.face_drawn_in_front(
             diff.cells,
             global_walls,
