@@ -605,9 +605,6 @@ def _turned(
     return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
-# The length at which line_through_wall takes a difference's own main axis for its line (a
-# shorter, compact one: the line through it holding the most local walls), as ghost_of_wall
-# does by default.
 def face_drawn_in_front(
     cells: NDArray[np.intp],
     global_walls: BoolArray,
@@ -644,7 +641,7 @@ def face_drawn_in_front(
         return False
     normal = square_to(axis)
     lo, hi = np.percentile((pts - centre) @ normal, [5, 95])
-    if float(hi - lo) * resolution > max_width_m:
+    if float(hi - lo + 1) * resolution > max_width_m:  # in cells, both edges in
         return False
     h, w = global_walls.shape
     steps = max(1, round(max_offset_m / resolution))
@@ -686,9 +683,10 @@ def face_drawn_in_front(
             continue  # the wall drawn where it stands: this is something in front of it
         offset = float(np.median(hit[found]))
         along = (pts - centre) @ axis
-        # Past each end, clear of the tolerance around it: where the face goes on, drawn
-        # along it (within the tolerance across it: a corner's other face, drawn, crosses its
-        # line in a cell or two), over ``ends_m`` / 2 of it at least.
+        # Past each end, clear of the tolerance around it: where the face goes on (within the
+        # tolerance across the line at the median offset: a face turned a few degrees to the
+        # difference), drawn along it (a corner's other face, drawn, crosses that line in a
+        # cell or two), over ``ends_m`` / 2 of it at least.
         past = np.arange(tol_px + 1, tol_px + 1 + max(1, round(ends_m / resolution)))
         enough = max(3, round(ends_m / 2 / resolution))
         for end, direction in ((along.max(), 1.0), (along.min(), -1.0)):
@@ -699,8 +697,7 @@ def face_drawn_in_front(
             drawn = np.zeros(len(t), bool)
             for k in range(-tol_px, tol_px + 1):
                 at = cell(r + k * d[0], c + k * d[1])
-                if abs(k) <= 1:
-                    on |= global_walls[at]
+                on |= global_walls[at]
                 drawn |= local_state[at] == OCCUPIED
             if np.count_nonzero(on & drawn) >= enough:
                 break  # the face seen in place past an end
@@ -709,6 +706,9 @@ def face_drawn_in_front(
     return False
 
 
+# The length at which line_through_wall takes a difference's own main axis for its line (a
+# shorter, compact one: the line through it holding the most local walls), as ghost_of_wall
+# does by default.
 _LINE_LENGTH_M = 1.5
 
 

@@ -1170,7 +1170,8 @@ def test_an_obstacle_in_front_of_a_wall_seen_past_its_ends_is_not_a_face_drawn_i
     """Not: a box's face 1 m long 0.3 m in front of a long wall, the wall behind it hidden and
     seen where it stands past both its ends (past one end is enough); the face drawn low with
     the floor between seen free (a copy: ghost_of_wall's case); too far from the face (1.6 m);
-    too short (0.4 m); a depth of its own (0.3 m deep)."""
+    too short (0.4 m); a depth of its own (0.3 m deep, drawn so); the face drawn where it stands
+    too; a line over the face for 0.6 of it only."""
     g = np.full((120, 120), FREE, np.uint8)
     g[55:61, :] = OCCUPIED
     loc = g.copy()
@@ -1189,4 +1190,25 @@ def test_an_obstacle_in_front_of_a_wall_seen_past_its_ends_is_not_a_face_drawn_i
     g, loc, cells = _face_in_front()
     assert not _in_front(g, loc, cells[(cells[:, 1] >= 45) & (cells[:, 1] < 53)])
     deep = np.column_stack(np.nonzero(np.pad(np.ones((6, 40), bool), ((66, 48), (36, 44)))))
+    loc[66:72, 36:76] = OCCUPIED  # drawn as deep as it is
     assert not _in_front(g, loc, deep)
+    g, loc, cells = _face_in_front()
+    loc[60, 30:81] = OCCUPIED  # the face drawn where it stands too: something in front of it
+    assert not _in_front(g, loc, cells)
+    g, loc, cells = _face_in_front()
+    longer = np.column_stack(np.nonzero(_row(g.shape, 66, 30, 110)))  # 0.6 of it over the face
+    assert not _in_front(g, loc, longer)
+
+
+def test_an_obstacle_turned_in_front_of_a_wall_seen_past_its_ends_is_not_explained() -> None:
+    """A box's face 2 m long, turned 5 degrees, 0.3 m in front of a long thin wall seen where
+    it stands past both its ends: no face drawn in front (past an end the wall lies more than a
+    cell off the line at the face's median offset)."""
+    g = np.full((160, 160), FREE, np.uint8)
+    g[60, :] = OCCUPIED
+    loc = g.copy()
+    cols = np.arange(40, 80)
+    rows = np.rint(66 + (cols - 40) * math.tan(math.radians(5))).astype(int)
+    loc[61:72, 38:82] = UNKNOWN  # behind the box
+    loc[rows, cols] = OCCUPIED
+    assert not _in_front(g, loc, np.column_stack((rows, cols)))
