@@ -1201,14 +1201,18 @@ def test_an_obstacle_in_front_of_a_wall_seen_past_its_ends_is_not_a_face_drawn_i
 
 
 def test_an_obstacle_turned_in_front_of_a_wall_seen_past_its_ends_is_not_explained() -> None:
-    """A box's face 2 m long, turned 5 degrees, 0.3 m in front of a long thin wall seen where
-    it stands past both its ends: no face drawn in front (past an end the wall lies more than a
-    cell off the line at the face's median offset)."""
-    g = np.full((160, 160), FREE, np.uint8)
-    g[60, :] = OCCUPIED
-    loc = g.copy()
-    cols = np.arange(40, 80)
-    rows = np.rint(66 + (cols - 40) * math.tan(math.radians(5))).astype(int)
-    loc[61:72, 38:82] = UNKNOWN  # behind the box
-    loc[rows, cols] = OCCUPIED
-    assert not _in_front(g, loc, np.column_stack((rows, cols)))
+    """A box's face 2 m long, turned 3 or 5 degrees, 0.3 m in front of a thin wall seen where
+    it stands past both its ends (only the strip behind the box unseen): no face drawn in
+    front, though past its ends the wall lies more than a cell off the line at the face's
+    median offset."""
+    for deg in (3, 5):
+        g = np.full((200, 200), FREE, np.uint8)
+        g[60, :] = OCCUPIED
+        loc = g.copy()
+        loc[:60] = UNKNOWN  # the wall's far side unseen
+        cols = np.arange(80, 120)
+        rows = np.rint(67 + (cols - 100) * math.tan(math.radians(deg))).astype(int)
+        for r, c in zip(rows, cols, strict=True):
+            loc[60:r, c - 1 : c + 2] = UNKNOWN  # the box's shadow
+        loc[rows, cols] = OCCUPIED
+        assert not _in_front(g, loc, np.column_stack((rows, cols)))
