@@ -1034,8 +1034,10 @@ def _refit(
             return True
         # Session 42 (s20_1303's gen-10: a block's face drawn 1.1-1.4 m in front of itself by a
         # 20 m lidar's pass, its inside unseen, three false additions along it): over the 57
-        # generated sets, 7 false positives fewer (4 of them held out), no change lost (0.3 m
-        # of line and 70 % of it over the face: 6 more fewer, for 6 changes lost, 5 held out).
+        # generated sets, 5 false positives fewer (4 of them held out), no change lost (0.3 m
+        # of line and 70 % of it over the face: 6 more fewer, for 6 changes lost, 5 held out;
+        # the width counted without its edge cell and the face past an end looked for within a
+        # cell, bugs, took 2 more in s20_1303).
         if diff.kind == "added" and refit_stage.face_drawn_in_front(
             diff.cells,
             global_walls,
