@@ -1112,7 +1112,7 @@ def thin_walls_seen_free(
     """
     out = np.zeros(removed.shape, bool)
     px = _LinePx.of(rules, resolution)
-    small = _small_mask(removed, smaller_than_px)
+    small = removed & ~drop_small(removed, min_pixels=smaller_than_px)
     # One window for all the small pieces (each stretch measured once, whole, whatever the
     # number of dots on it), grown so that a stretch through a piece at its edge is whole in
     # it, and the side and unknown rules around that stretch too.
@@ -1122,21 +1122,6 @@ def thin_walls_seen_free(
         out[win] = _lines_seen_free_in(
             global_state[win], local_state[win], removed[win], small[win], px
         )
-    return out
-
-
-def _small_mask(removed: BoolArray, smaller_than_px: int) -> BoolArray:
-    """The cells of ``removed``'s pieces (8-connected) under ``smaller_than_px`` cells."""
-    out = np.zeros(removed.shape, bool)
-    box = box_around(removed, 0)
-    if box is None:
-        return out
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(
-        removed[box].view(np.uint8), connectivity=8
-    )
-    keep = stats[:, cv2.CC_STAT_AREA] < smaller_than_px
-    keep[0] = False
-    out[box] = keep[labels]
     return out
 
 
