@@ -1223,6 +1223,25 @@ def test_a_dotted_wall_two_cells_thick_is_seen_through_beside_it_not_on_it() -> 
     assert not _seen_free(g, loc, removed).any()
 
 
+def test_a_line_two_cells_thick_looks_for_the_floor_its_width_across() -> None:
+    """The two-cell partition with the floor behind it only from row 56 on (rows 52-55 seen
+    unknown): from its first row (50) that floor is 0.25 m past the line's far edge, 6 cells
+    off, as far as from its second row; all its cells see through it, and three quarters asked
+    of them mark its dots. Counted from the first row's own edge, half would."""
+    g, loc, removed = _dotted()
+    g[51, ::2] = OCCUPIED
+    loc[51, :] = OCCUPIED
+    loc[51, 40:60] = FREE
+    removed[51, 45:55] = g[51, 45:55] == OCCUPIED
+    loc[52:56, :] = UNKNOWN
+    rules = LineRules(side_share=0.75)
+    out = thin_walls_seen_free(g, loc, removed, resolution=RES, smaller_than_px=8, rules=rules)
+    assert (out == removed).all()
+    loc[56, :] = UNKNOWN  # the floor 7 cells off the first row: past the side
+    out = thin_walls_seen_free(g, loc, removed, resolution=RES, smaller_than_px=8, rules=rules)
+    assert not out.any()
+
+
 def test_a_piece_on_two_stretches_marks_both() -> None:
     """A piece of 5 cells (columns 59-63) split by a speck of the local map (column 61) lies
     on two stretches seen free, 1 m each: the first, through the gap's dots, marks its cell
