@@ -1113,11 +1113,14 @@ def thin_walls_seen_free(
     out = np.zeros(removed.shape, bool)
     px = _LinePx.of(rules, resolution)
     small = removed & ~drop_small(removed, min_pixels=smaller_than_px)
-    # One window for all the small pieces (each stretch measured once, whole, whatever the
-    # number of dots on it), grown so that a stretch through a piece at its edge is whole in
-    # it, and the side and unknown rules around that stretch too.
-    margin_px = math.ceil(rules.min_length_m / resolution) + px.close + px.around + 2
-    win = box_around(small, margin_px)
+    if not small.any():
+        return out
+    # One window, the local map's floor grown by as far as the rules look: a stretch lies on
+    # that floor, so each one is measured once and whole there, whatever the number of dots
+    # on it and wherever the other pieces lie; the morphology and the side and unknown rules
+    # around it see what they would on the whole map.
+    margin_px = px.close + px.thick + px.around + 2
+    win = box_around(local_state == FREE, margin_px)
     if win is not None:
         out[win] = _lines_seen_free_in(
             global_state[win], local_state[win], removed[win], small[win], px

@@ -1255,6 +1255,26 @@ def test_a_piece_on_two_stretches_marks_both() -> None:
     assert out[50, 59] and out[50, 63]
 
 
+def test_a_dot_is_judged_on_its_whole_stretch_whatever_other_pieces_lie_far_off() -> None:
+    """A dotted partition 7 m long (row 100) turns a corner 6 m from a dot seen gone (column
+    30) and runs on 3 m (column 150), all of it seen free: its stretch is one, a corner, and
+    the dot is not marked, alone or with a speck 5 m off the corner. A window cut around the
+    pieces measured a straight line through the dot alone (and marked it) and the corner with
+    the speck."""
+    g = np.full((200, 200), FREE, np.uint8)
+    g[100, 10:151:2] = OCCUPIED
+    g[100:160:2, 150] = OCCUPIED
+    loc = np.full_like(g, FREE)
+    removed = np.zeros(g.shape, bool)
+    removed[100, 30] = True
+    assert not _seen_free(g, loc, removed).any()
+    far = removed.copy()
+    far[190, 190] = True
+    assert not _seen_free(g, loc, far).any()
+    g[100:160:2, 150] = FREE  # no corner: the straight line through the dot is marked
+    assert _seen_free(g, loc, removed)[100, 30]
+
+
 def test_a_dotted_wall_seen_free_too_short_or_through_specks_is_not_marked() -> None:
     """Not: a gap 0.6 m wide (0.5 m of it clear of the wall's ends, under the 0.6 m asked);
     the line seen free through specks of the local map 0.25 m apart (rays through a wall seen
