@@ -126,8 +126,7 @@ def explained_by_refit(
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
         ct, st = math.cos(turn), math.sin(turn)
         qr, qc = _turned(pr, pc, (centre_r, centre_c), ct, st)
-        ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
-        ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
+        ir, ic = _cells_at(qr[None, :] + dy, qc[None, :] + dx, g.shape)
         cost = field[ir, ic].mean(axis=1) + slide_cost
         k = int(np.argmin(cost))
         if cost[k] < best[0]:
@@ -138,10 +137,7 @@ def explained_by_refit(
     def moved(r: NDArray[np.intp], c: NDArray[np.intp]) -> tuple[NDArray[np.intp], ...]:
         qr, qc = _turned(r, c, (centre_r, centre_c), ct, st)
         qr, qc = qr + sy, qc + sx
-        return (
-            np.clip(np.rint(qr), 0, g.shape[0] - 1).astype(np.intp),
-            np.clip(np.rint(qc), 0, g.shape[1] - 1).astype(np.intp),
-        )
+        return _cells_at(qr, qc, g.shape)
 
     if kind == "added":
         mr, mc = moved(rr, cc)
@@ -237,8 +233,7 @@ def ghost_of_wall(
     def landed(qr: NDArray[np.float64], qc: NDArray[np.float64]) -> NDArray[np.float64]:
         """The share of the turned points (qr, qc) on a wall seen in place, for each shift
         across the line."""
-        ir = np.clip(np.rint(qr[None, :] + dy), 0, g.shape[0] - 1).astype(np.intp)
-        ic = np.clip(np.rint(qc[None, :] + dx), 0, g.shape[1] - 1).astype(np.intp)
+        ir, ic = _cells_at(qr[None, :] + dy, qc[None, :] + dx, g.shape)
         return np.asarray(near_target[ir, ic].mean(axis=1))
 
     free = None if local_state is None else local_state[box] == FREE
@@ -257,8 +252,7 @@ def ghost_of_wall(
         if n < 2:
             return True  # no cell between them
         f = np.arange(1, n)[:, None] / n
-        ir = np.clip(np.rint(r + f * (qr - r)), 0, g.shape[0] - 1).astype(np.intp)
-        ic = np.clip(np.rint(c + f * (qc - c)), 0, g.shape[1] - 1).astype(np.intp)
+        ir, ic = _cells_at(r + f * (qr - r), c + f * (qc - c), g.shape)
         return float(free[ir, ic].mean()) >= min_between_free
 
     for turn in np.radians(np.linspace(-turn_deg, turn_deg, 7)):
@@ -605,6 +599,17 @@ def _turned(
     return np.asarray(qr, np.float64), np.asarray(qc, np.float64)
 
 
+def _cells_at(
+    r: NDArray[Any], c: NDArray[Any], shape: tuple[int, ...]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The cells nearest (row, col) points ``r``, ``c`` (any shape), clamped to an array of
+    ``shape``: what the re-fit's checks index a grid with."""
+    return (
+        np.clip(np.rint(r), 0, shape[0] - 1).astype(np.intp),
+        np.clip(np.rint(c), 0, shape[1] - 1).astype(np.intp),
+    )
+
+
 def face_drawn_in_front(
     cells: NDArray[np.intp],
     global_walls: BoolArray,
@@ -643,15 +648,11 @@ def face_drawn_in_front(
     lo, hi = np.percentile((pts - centre) @ normal, [5, 95])
     if float(hi - lo + 1) * resolution > max_width_m:  # in cells, both edges in
         return False
-    h, w = global_walls.shape
     steps = max(1, round(max_offset_m / resolution))
     tol_px = max(1, round(tolerance_m / resolution))
 
     def cell(r: NDArray[np.float64], c: NDArray[np.float64]) -> tuple[NDArray[np.intp], ...]:
-        return (
-            np.clip(np.rint(r), 0, h - 1).astype(np.intp),
-            np.clip(np.rint(c), 0, w - 1).astype(np.intp),
-        )
+        return _cells_at(r, c, global_walls.shape)
 
     def drawn_near(r: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Per point: a local wall within the tolerance (a square)."""
