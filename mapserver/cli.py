@@ -110,6 +110,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
 def _by_stamp(bundles: list[Path]) -> list[Path]:
     """Bundles sorted by their manifest's stamp (stable; unreadable ones keep their place at
     the end, where processing reports what is wrong with them)."""
+    if len(bundles) < 2:  # nothing to order: not a manifest read more than processing does
+        return bundles
     from mapserver.bundle import read_manifest
     from mapserver.fleet.tracker import parse_stamp
 

@@ -13,6 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -1641,8 +1642,15 @@ def _render(
         banner=banner,
         left_out=aligned.left_out,
     )
-    dimg = render.diff_image(view.grid, window, view.state, masks.added, masks.removed, differences)
-    return {"overlay.png": render.encode_png(over), "diff.png": render.encode_png(dimg)}
+    # PNG encoding takes as long as the painting, and OpenCV lets go of the GIL while it
+    # encodes: the overlay is encoded while the difference image is painted and encoded.
+    with ThreadPoolExecutor(max_workers=1) as encoder:
+        over_png = encoder.submit(render.encode_png, over)
+        dimg = render.diff_image(
+            view.grid, window, view.state, masks.added, masks.removed, differences
+        )
+        diff_png = render.encode_png(dimg)
+        return {"overlay.png": over_png.result(), "diff.png": diff_png}
 
 
 def _observe(
