@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -431,6 +432,28 @@ def test_the_transform_reported_after_a_drift_correction_follows_the_robot_s_rou
     still = _rigid_of_warp(local, turned, east, np.array([[1.0, 1.0]] * 3))
     assert still.theta == pytest.approx(_rigid_of_warp(local, turned, east).theta)
     assert abs(still.theta - 0.3) < 0.05
+
+
+def test_a_drift_correction_of_a_few_centimetres_is_reported_too() -> None:
+    """A correction of 0.04 m east, well under the 0.1 m from which the log names it, still
+    moves the transform reported (until session 44 the alignment's own was reported below
+    0.1 m); without a correction the alignment's transform is reported as it is."""
+    from mapserver.deform import DriftField, DriftStack
+    from mapserver.pipeline import _reported_transform, _Warped
+
+    local = office(width_m=20.0, height_m=12.0, seed=2)
+    t = Transform2D(math.radians(5.0), 1.0, 2.0)
+    alignment = SimpleNamespace(nav2_from_slam=t)
+    small = DriftStack(
+        (DriftField(-50.0, -50.0, 50.0, np.full((3, 3, 2), [0.04, 0.0], np.float32)),)
+    )
+    state = np.zeros((2, 2), np.uint8)
+    route = np.array([[1.0, 2.0], [8.0, 2.0], [8.0, 9.0]])
+    warped = _Warped(None, state, None, in_pieces=False, drift=small, drift_m=0.04)  # type: ignore[arg-type]
+    got = _reported_transform(local, alignment, warped, route)  # type: ignore[arg-type]
+    assert (got.theta, got.tx, got.ty) == pytest.approx((t.theta, 1.04, 2.0), abs=1e-6)
+    none = _Warped(None, state, None, in_pieces=False)  # type: ignore[arg-type]
+    assert _reported_transform(local, alignment, none, route) is t  # type: ignore[arg-type]
 
 
 def test_misfit_tiles_fixed_by_the_offset_give_the_same_tolerance_on_any_crop() -> None:
