@@ -98,6 +98,33 @@ def _broke(future: Future[WorkDone]) -> bool:
 # -- the parent side ----------------------------------------------------------------------------
 
 
+def over_limit(
+    stage: str,
+    held_s: float,
+    resident: int | None,
+    *,
+    timeout_s: float,
+    memory_limit_mb: int,
+) -> str | None:
+    """Why a worker that has held its bundle ``held_s`` seconds, in ``stage``, with ``resident``
+    bytes resident (None: unknown) must be stopped, or None. The memory first: a worker past
+    both limits (one that grew slowly on a loaded machine, or was looked at late) is stopped
+    for the one that endangers the server, and its error says so."""
+    if resident is not None and resident > memory_limit_mb * 2**20:
+        return (
+            f"over the memory limit: {resident / 2**20:.0f} MiB in stage {stage} after "
+            f"{held_s:.1f} s (worker_memory_mb: {memory_limit_mb}); the maps may be too large "
+            "for this server"
+        )
+    if held_s > timeout_s:
+        return (
+            f"over the time limit: still in stage {stage} after {held_s:.1f} s "
+            f"(bundle_timeout_seconds: {timeout_s:g}); the maps may be too large for this "
+            "server, or the bundle makes the pipeline hang"
+        )
+    return None
+
+
 @dataclass
 class _Job:
     bundle_id: str
@@ -622,23 +649,16 @@ class Service:
             job = jobs.get(activity.token)
             if job is None or job.over_limit is not None or activity.pid not in processes:
                 continue
-            held_s = now - activity.started
             stage = activity.stage
-            if held_s > self._timeout_s:
-                reason = (
-                    f"over the time limit: still in stage {stage} after {held_s:.1f} s "
-                    f"(bundle_timeout_seconds: {self._timeout_s:g}); the maps may be too large "
-                    "for this server, or the bundle makes the pipeline hang"
-                )
-            else:
-                resident = resident_bytes(activity.pid)
-                if resident is None or resident <= self._memory_limit_mb * 2**20:
-                    continue
-                reason = (
-                    f"over the memory limit: {resident / 2**20:.0f} MiB in stage {stage} after "
-                    f"{held_s:.1f} s (worker_memory_mb: {self._memory_limit_mb}); the maps may "
-                    "be too large for this server"
-                )
+            reason = over_limit(
+                stage,
+                now - activity.started,
+                resident_bytes(activity.pid),
+                timeout_s=self._timeout_s,
+                memory_limit_mb=self._memory_limit_mb,
+            )
+            if reason is None:
+                continue
             job.over_limit = (stage, reason)
             self._stopped_in.add(job.generation)
             log.warning("%s: %s; stopping its worker (pid %d)", job.bundle_id, reason, activity.pid)

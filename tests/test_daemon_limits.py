@@ -57,7 +57,7 @@ def test_bundles_past_the_time_or_memory_limit_fail_at_once_and_the_others_go_on
     hog = error_of(tmp_path, "hog-1")
     assert hog["stage"] == "warp", hog
     match = re.search(r"over the memory limit: ([0-9]+) MiB in stage warp", hog["reason"])
-    assert match and int(match.group(1)) > 256, hog
+    assert match and int(match.group(1)) > 256, hog["reason"]
     assert "(worker_memory_mb: 256)" in hog["reason"]
 
     alloc = error_of(tmp_path, "alloc-1")
@@ -85,3 +85,21 @@ def test_a_limit_must_be_positive(tmp_path: Path, value: int) -> None:
     for key in ("bundle_timeout_seconds", "worker_memory_mb"):
         with pytest.raises(ConfigError, match=key):
             parse_config({key: value}, base_dir=tmp_path)
+
+
+def test_a_worker_past_both_limits_is_stopped_for_its_memory() -> None:
+    """A worker that grew past its memory limit after the time limit had passed too (a hog on
+    a loaded machine, looked at late) fails with the memory in its reason: the time limit was
+    checked first until session 44, and the CI of a busy machine saw 'over the time limit' for
+    the test's memory hog."""
+    from mapserver.service import over_limit
+
+    mib = 2**20
+    both = over_limit("warp", 2.4, 300 * mib, timeout_s=2.0, memory_limit_mb=256)
+    assert both is not None and both.startswith("over the memory limit: 300 MiB in stage warp")
+    assert "(worker_memory_mb: 256)" in both
+    slow = over_limit("align", 2.4, 100 * mib, timeout_s=2.0, memory_limit_mb=256)
+    assert slow is not None and slow.startswith("over the time limit: still in stage align")
+    unknown = over_limit("align", 2.4, None, timeout_s=2.0, memory_limit_mb=256)
+    assert unknown is not None and unknown.startswith("over the time limit")
+    assert over_limit("diff", 1.0, 200 * mib, timeout_s=2.0, memory_limit_mb=256) is None
