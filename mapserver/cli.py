@@ -94,6 +94,14 @@ def _cmd_process(args: argparse.Namespace) -> int:
                 failures += 1
                 sys.stderr.write(f"mapserver: error: {error.reason}\n")
                 continue
+            except OSError as error:  # a full disk, a folder it may not write: the next one
+                failures += 1
+                where = error.filename or outbox
+                sys.stderr.write(
+                    f"mapserver: error: {bundle_dir}: cannot write its result to {where}: "
+                    f"{error.strerror or error}\n"
+                )
+                continue
             differences = outcome.result.get("differences") or []
             note = " (replaced the earlier result)" if replaced else ""
             lines = [

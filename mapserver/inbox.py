@@ -43,6 +43,7 @@ from watchdog.observers import Observer
 from watchdog.observers.api import BaseObserver
 from watchdog.observers.polling import PollingObserver
 
+from mapserver import tree
 from mapserver.bundle import (
     MANIFEST,
     BundleFiles,
@@ -123,26 +124,44 @@ def fingerprint(path: Path) -> Fingerprint | None:
         kind = stat.S_IFMT(st.st_mode)
         return (rel, kind, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
 
+    def unreadable(rel: str, error: OSError) -> tuple[str, int, int, int, int, int]:
+        # Type -1: what cannot be looked at (a folder the daemon may not list, a path too
+        # long); it stays in the fingerprint, and the check says what is wrong with it.
+        return (rel, -1, error.errno or 0, 0, 0, 0)
+
     try:
         top = os.lstat(path)
     except FileNotFoundError:
         return None
+    except OSError as error:
+        return (unreadable("", error),)
     items = [item("", top)]
     if stat.S_ISDIR(top.st_mode):
-        for dirpath, dirnames, filenames in os.walk(path):
-            for name in dirnames + filenames:
-                full = os.path.join(dirpath, name)
-                try:
-                    items.append(item(os.path.relpath(full, path), os.lstat(full)))
-                except FileNotFoundError:
-                    items.append((os.path.relpath(full, path), 0, -1, 0, 0, 0))
+
+        def cannot_list(folder: str, error: OSError) -> None:
+            items.append(unreadable(os.path.relpath(folder, path) + "/", error))
+
+        for full in tree.walk(path, cannot_list):
+            rel = os.path.relpath(full, path)
+            try:
+                items.append(item(rel, os.lstat(full)))
+            except FileNotFoundError:
+                items.append((rel, 0, -1, 0, 0, 0))
+            except OSError as error:
+                items.append(unreadable(rel, error))
     return tuple(sorted(items))
 
 
 def _walk(root: Path) -> Iterator[Path]:
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            yield Path(dirpath) / name
+    def cannot_list(folder: str, error: OSError) -> None:
+        raise BundleError(
+            f"cannot read this folder of the bundle ({error.strerror}): the daemon must be "
+            "able to read every file and folder of an upload",
+            file=os.path.relpath(folder, root),
+        )
+
+    for full in tree.walk(root, cannot_list):
+        yield Path(full)
 
 
 def check_entry(path: Path, *, limits: LimitsConfig = _LIMITS) -> BundleFiles:

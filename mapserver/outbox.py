@@ -36,8 +36,9 @@ from itertools import count
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapserver.bundle import is_valid_bundle_id
-from mapserver.errors import ConfigError
+from mapserver import tree
+from mapserver.bundle import MANIFEST, is_valid_bundle_id
+from mapserver.errors import ConfigError, MapserverError
 from mapserver.fsio import dump_yaml as _dump
 from mapserver.fsio import fsync_dir as _fsync_dir
 from mapserver.fsio import rename_durable as _rename
@@ -56,6 +57,12 @@ TMP_PREFIX = ".tmp-"
 _PROBE = ".mapserver-probe"
 _ID_CHARS = frozenset(string.ascii_letters + string.digits + "._-")
 _MAX_ID = 128
+
+
+class OutboxError(MapserverError):
+    """A result that cannot be written where it was asked to go."""
+
+    default_stage = "outbox"
 
 
 def utc_now() -> str:
@@ -95,14 +102,12 @@ def suffixed(bundle_id: str, n: int) -> str:
 def _tree(root: Path) -> dict[str, tuple[int, int, str]]:
     """Relative path -> (file type, size, symlink target) of everything under ``root``."""
     out: dict[str, tuple[int, int, str]] = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            path = os.path.join(dirpath, name)
-            st = os.lstat(path)
-            kind = stat.S_IFMT(st.st_mode)
-            target = os.readlink(path) if stat.S_ISLNK(st.st_mode) else ""
-            size = st.st_size if stat.S_ISREG(st.st_mode) else 0
-            out[os.path.relpath(path, root)] = (kind, size, target)
+    for path in tree.walk(root):
+        st = os.lstat(path)
+        kind = stat.S_IFMT(st.st_mode)
+        target = os.readlink(path) if stat.S_ISLNK(st.st_mode) else ""
+        size = st.st_size if stat.S_ISREG(st.st_mode) else 0
+        out[os.path.relpath(path, root)] = (kind, size, target)
     return out
 
 
@@ -176,8 +181,16 @@ def write_result(outbox: Path, outcome: Outcome) -> Path:
     ``mapserver process`` wants; the daemon uses :meth:`Store.publish`, which never replaces).
     """
     outbox.mkdir(parents=True, exist_ok=True)
-    tmp = _write_tmp_result(outbox, outcome)
     final = outbox / outcome.bundle_id
+    if os.path.isdir(final) and not os.path.islink(final) and _holds_input(final):
+        # ``mapserver process --outbox .`` in the folder that holds the bundle: the "earlier
+        # result" would be the bundle itself, and replacing it would delete the input.
+        raise OutboxError(
+            f"{final} is not an earlier result but a bundle (it holds {MANIFEST}): choose an "
+            "outbox that is not the folder the bundle is in; nothing was written",
+            file=final,
+        )
+    tmp = _write_tmp_result(outbox, outcome)
     if os.path.lexists(final):
         old = outbox / f"{TMP_PREFIX}old-{outcome.bundle_id}-{secrets.token_hex(4)}"
         os.rename(final, old)
@@ -186,6 +199,11 @@ def write_result(outbox: Path, outcome: Outcome) -> Path:
     else:
         _rename(tmp, final)
     return final
+
+
+def _holds_input(folder: Path) -> bool:
+    """Whether ``folder`` holds a bundle (its manifest) rather than a result."""
+    return os.path.lexists(folder / MANIFEST)
 
 
 @dataclass(frozen=True)

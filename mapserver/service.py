@@ -18,6 +18,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -88,6 +89,10 @@ _POLL_TURN_S = 0.05
 # The inotify watches are set up afresh after this many bundles left the inbox (each left one
 # watch behind: see Service._rearm). $MAPSERVER_TEST_REARM_AFTER: a smaller number, for tests.
 _REARM_AFTER = int(os.environ.get("MAPSERVER_TEST_REARM_AFTER", "500"))
+
+
+# Deeper than the folders a path of PATH_MAX bytes can name (see Service.run).
+_RECURSION_LIMIT = 5000
 
 
 def _broke(future: Future[WorkDone]) -> bool:
@@ -284,6 +289,10 @@ class Service:
         Raises :class:`~mapserver.lock.AlreadyRunning` at once when another daemon serves the
         same inbox (nothing is touched then).
         """
+        # watchdog walks a folder moved into the inbox with os.walk, which recurses on Python
+        # 3.11: an upload nested a thousand folders deep (a path still under PATH_MAX, 4096
+        # bytes, holds about 2000) would raise RecursionError in its thread and stop the watch.
+        sys.setrecursionlimit(max(sys.getrecursionlimit(), _RECURSION_LIMIT))
         previous: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGTERM, signal.SIGINT):

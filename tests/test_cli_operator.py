@@ -242,3 +242,35 @@ def test_status_without_a_daemon_exits_3_and_counts_from_the_folders(
     ]
     assert lines[-1].startswith(f"  maps     {tmp_path / 'maps'}  ") and "GiB free" in lines[-1]
     assert lines[-3] == f"  archive  {tmp_path / 'archive'}  not there"
+
+
+def test_process_never_replaces_the_bundle_itself_with_its_result(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``cd runs && mapserver process --outbox . run-1``: the "earlier result" outbox/run-1 is
+    the bundle; replacing it deleted the input (session 44's review). Now it is refused, the
+    bundle is untouched and nothing is written beside it."""
+    runs = tmp_path / "runs"
+    bundle = make_bundle(runs / "run-1")
+    before = {p.name: p.read_bytes() for p in bundle.iterdir()}
+    monkeypatch.chdir(runs)
+    assert main(["process", "--outbox", ".", "run-1"]) == 1
+    err = capsys.readouterr().err
+    assert "is not an earlier result but a bundle (it holds bundle.yaml)" in err
+    assert {p.name: p.read_bytes() for p in bundle.iterdir()} == before
+    assert sorted(p.name for p in runs.iterdir()) == ["run-1"]
+
+
+def test_process_says_when_it_cannot_write_a_result_and_goes_on_with_the_next(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An outbox it cannot write (here a path under a regular file: the same OSError path as a
+    full disk) gives one error line per bundle, no traceback, and every bundle is tried."""
+    first, second = make_bundle(tmp_path / "a"), make_bundle(tmp_path / "b", seed=1)
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main(["process", "--outbox", str(blocker / "out"), str(first), str(second)]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mapserver")]
+    assert len(err) == 2, err
+    assert err[0].startswith(f"mapserver: error: {first}: cannot write its result to ")
+    assert err[1].startswith(f"mapserver: error: {second}: cannot write its result to ")
