@@ -448,3 +448,57 @@ def test_late_sessions_from_before_a_published_wall_do_not_erase_it(
         assert u.created == ()
     assert store.map_info("hall").current_version == 2
     assert (current(tmp_path)[WALL] == OCCUPIED).all()
+
+
+def test_an_approval_racing_the_daemon_that_expires_the_change_publishes_nothing(
+    tmp_path: Path, hall: Path
+) -> None:
+    """The daemon does not take the writer lock to apply a bundle: between an approval's read of
+    the change and its commit, a session that sees the spot as before expires it (session 44's
+    review: the expired change was published anyway, in a version nobody can approve again)."""
+    daemon = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = daemon.apply(wall_seen(robot, hours)).changes
+    assert daemon.change(cid).state == "confirmed"
+
+    import threading
+
+    committed = threading.Event()
+    updates: list[object] = []
+
+    def the_daemon() -> None:  # its own connection, as in its own process
+        def step(name: str) -> None:
+            if name == "bundle-applied":  # committed; next it waits for the writer lock
+                committed.set()
+
+        with FleetStore(tmp_path / "maps", REVIEW, checkpoint=step) as store:
+            updates.append(store.apply(robot.observe(20)))  # the wall is gone again
+
+    thread = threading.Thread(target=the_daemon)
+
+    def meanwhile(step: str) -> None:
+        if step == "version-written":
+            thread.start()
+            assert committed.wait(30)
+
+    with (
+        FleetStore(tmp_path / "maps", REVIEW, checkpoint=meanwhile) as operator,
+        pytest.raises(StoreError, match=f"change {cid} is expired now, not confirmed"),
+    ):
+        operator.approve(cid)
+    thread.join(30)
+    assert cid in updates[0].expired  # type: ignore[attr-defined]
+    assert [v.version for v in daemon.versions("hall")] == [1]
+    assert daemon.change(cid).state == "expired" and daemon.change(cid).version is None
+    assert not (tmp_path / "maps" / "hall" / "v0002.pgm").exists()
+    assert yaml.safe_load(current_yaml(tmp_path).read_text())["image"] == "v0001.pgm"
+    with (
+        FleetStore(tmp_path / "maps", REVIEW) as operator,
+        pytest.raises(StoreError, match="expired: only a pending or confirmed"),
+    ):
+        operator.reject(cid)
+
+
+def current_yaml(tmp_path: Path) -> Path:
+    return tmp_path / "maps" / "hall" / "current.yaml"

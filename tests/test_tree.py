@@ -34,6 +34,12 @@ def test_walk_lists_a_tree_deeper_than_the_recursion_limit(tmp_path: Path) -> No
     assert len(found) == depth + 1
     assert found[-1].endswith("/a/file")
     assert fingerprint(tmp_path / "top") is not None
+    # Removed here, deepest first: pytest's own clean-up of old temporary folders (shutil.rmtree)
+    # recurses, and a later run would fail on this tree.
+    os.unlink(os.path.join(cur, "file"))
+    while cur != str(tmp_path):
+        os.rmdir(cur)
+        cur = os.path.dirname(cur)
 
 
 def test_walk_does_not_follow_links_and_reports_a_folder_it_cannot_list(

@@ -459,6 +459,7 @@ class FleetStore:
             [info.id],
             note=f"change {info.id} approved by {actor}",
             actor=actor,
+            expect="confirmed",
         )
         self._write_derived(info.map)
         return next(v for v in self.versions(info.map) if v.version == version)
@@ -476,10 +477,13 @@ class FleetStore:
                 f"change {change_id} is {info.state}: only a pending or confirmed change can be rejected"
             )
         with transaction(self._conn):
-            self._conn.execute(
-                "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? WHERE id = ?",
+            cur = self._conn.execute(
+                "UPDATE changes SET state = 'rejected', note = ?, updated_at = ? "
+                "WHERE id = ? AND state IN ('pending', 'confirmed')",
                 (f"rejected by {actor}", now_utc(), info.id),
             )
+            # The daemon may have expired it since it was read (it does not take the lock).
+            self._still_in("pending or confirmed", info.id, cur.rowcount)
             self._event(info.id, actor, "rejected")
             self._dirty.add(info.id)
         self._write_derived(info.map)
@@ -704,9 +708,13 @@ class FleetStore:
         *,
         note: str,
         actor: str = "mapserver",
+        expect: str | None = None,
     ) -> int:
         """A new version: the current one with the changes painted (an added change's cells
-        occupied, a removed one's free), only the cells their sessions saw changed."""
+        occupied, a removed one's free), only the cells their sessions saw changed. With
+        ``expect``, each change must still be in that state when the version is committed
+        (the daemon may expire it meanwhile: it does not take the writer lock), or nothing is
+        published (:class:`StoreError`)."""
         state = self._current_state(map_id, name).copy()
         for cid in ids:
             kind, cells = self._paint_cells(cid)
@@ -722,16 +730,28 @@ class FleetStore:
             version = self._current_version(map_id)
             with transaction(self._conn):
                 for cid in ids:
-                    self._conn.execute(
+                    cur = self._conn.execute(
                         "UPDATE changes SET state = 'published', version = ?, updated_at = ? "
-                        "WHERE id = ?",
-                        (version, now_utc(), cid),
+                        "WHERE id = ? AND (? IS NULL OR state = ?)",
+                        (version, now_utc(), cid, expect, expect),
                     )
+                    self._still_in(expect, cid, cur.rowcount)
                     self._event(cid, actor, "published", f"already in version {version}")
             self._dirty.update(ids)
             return version
         return self._publish_state(
-            map_id, name, lattice, yaw, state, note, published=ids, actor=actor
+            map_id, name, lattice, yaw, state, note, published=ids, actor=actor, expect=expect
+        )
+
+    def _still_in(self, expect: str | None, cid: int, updated: int) -> None:
+        """Inside a publication's transaction: raise (rolling it back) when change ``cid`` was
+        not updated because it is no longer in state ``expect``."""
+        if expect is None or updated == 1:
+            return
+        row = self._conn.execute("SELECT state FROM changes WHERE id = ?", (cid,)).fetchone()
+        raise StoreError(
+            f"change {cid} is {row[0] if row else 'gone'} now, not {expect}: the daemon updated "
+            "it while this was being done; nothing was published"
         )
 
     def _publish_state(
@@ -746,6 +766,7 @@ class FleetStore:
         published: Sequence[int] = (),
         undone: Sequence[int] = (),
         actor: str = "mapserver",
+        expect: str | None = None,
     ) -> int:
         version = self._current_version(map_id) + 1
         folder = self.root / name
@@ -753,6 +774,47 @@ class FleetStore:
         digest = sha256_file(image)
         now = now_utc()
         self._checkpoint("version-written")
+        try:
+            self._commit_version(
+                map_id,
+                version,
+                now,
+                yaml_path,
+                image,
+                digest,
+                note,
+                published,
+                undone,
+                actor,
+                expect,
+            )
+        except StoreError:
+            # Never published: its files go (they would be written again by the next version).
+            for path in (yaml_path, image):
+                path.unlink(missing_ok=True)
+            raise
+        self._dirty.update(published, undone)
+        frozen = state.copy()
+        frozen.flags.writeable = False
+        self._states[map_id] = (version, frozen)
+        publish.write_current(folder, yaml_path)
+        log.info("map %s: published version %d (%s)", name, version, note)
+        return version
+
+    def _commit_version(
+        self,
+        map_id: int,
+        version: int,
+        now: str,
+        yaml_path: Path,
+        image: Path,
+        digest: str,
+        note: str,
+        published: Sequence[int],
+        undone: Sequence[int],
+        actor: str,
+        expect: str | None,
+    ) -> None:
         with transaction(self._conn):
             self._conn.execute(
                 "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
@@ -760,10 +822,12 @@ class FleetStore:
                 (map_id, version, now, yaml_path.name, image.name, digest, note),
             )
             for cid in published:
-                self._conn.execute(
-                    "UPDATE changes SET state = 'published', version = ?, updated_at = ? WHERE id = ?",
-                    (version, now, cid),
+                cur = self._conn.execute(
+                    "UPDATE changes SET state = 'published', version = ?, updated_at = ? "
+                    "WHERE id = ? AND (? IS NULL OR state = ?)",
+                    (version, now, cid, expect, expect),
                 )
+                self._still_in(expect, cid, cur.rowcount)
                 action = "approved" if actor != "mapserver" else "published"
                 self._event(cid, actor, action, f"in version {version}")
             for cid in undone:
@@ -772,13 +836,6 @@ class FleetStore:
                     (f"undone by {note}", now, cid),
                 )
                 self._event(cid, actor, "rolled back", f"version {version}: {note}")
-        self._dirty.update(published, undone)
-        frozen = state.copy()
-        frozen.flags.writeable = False
-        self._states[map_id] = (version, frozen)
-        publish.write_current(folder, yaml_path)
-        log.info("map %s: published version %d (%s)", name, version, note)
-        return version
 
     def _write_derived(self, name: str, *, force: bool = False) -> None:
         """current.yaml (force), the keepout mask (when its cells changed) and changes.yaml."""
