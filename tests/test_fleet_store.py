@@ -305,6 +305,53 @@ def test_rollback_publishes_a_new_version_equal_to_the_old_one(tmp_path: Path, h
     assert (load_map(tmp_path / "maps" / "hall" / "v0002.yaml").state[WALL] == OCCUPIED).all()
 
 
+def test_a_rollback_to_a_version_holding_an_undone_change_publishes_it_again(
+    tmp_path: Path, hall: Path
+) -> None:
+    """Session 44's review: after 'rollback to 1' undid the wall, 'rollback to 2' put the wall
+    back in the map while its change stayed rejected (changes.yaml and the keepout mask said
+    it was not there)."""
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = store.apply(wall_seen(robot, hours)).changes
+    assert store.change(cid).version == 2
+    store.rollback("hall", 1)  # version 3: no wall
+    assert store.change(cid).state == "rejected"
+    back = store.rollback("hall", 2)  # version 4: the wall again
+    assert back.version == 4 and (current(tmp_path)[WALL] == OCCUPIED).all()
+    assert store.change(cid).state == "published"
+    assert [h["action"] for h in store.history(cid)][-2:] == ["rolled back", "published"]
+    store.rollback("hall", 3)  # version 5 copies version 3, which copied version 1: no wall
+    assert store.change(cid).state == "rejected"
+    assert np.array_equal(current(tmp_path), building())
+    store.rollback("hall", 4)  # version 4 copied version 2: the wall
+    assert store.change(cid).state == "published"
+    doc = yaml.safe_load((tmp_path / "maps" / "hall" / "changes.yaml").read_text())
+    assert [(c["id"], c["state"]) for c in doc["changes"]] == [(cid, "published")]
+
+
+def test_a_store_made_before_rollbacks_recorded_their_source_reads_it_from_the_note(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = store.apply(wall_seen(robot, hours)).changes
+    store.rollback("hall", 1)
+    store.close()
+    conn = sqlite3.connect(tmp_path / "maps" / "store.db")  # as schema 2 left it
+    conn.execute("ALTER TABLE versions DROP COLUMN copy_of")
+    conn.execute("PRAGMA user_version = 2")
+    conn.commit()
+    conn.close()
+    store = FleetStore(tmp_path / "maps", AUTO)
+    rows = store._conn.execute("SELECT version, copy_of FROM versions ORDER BY version")
+    assert rows.fetchall() == [(1, None), (2, None), (3, 1)]
+    store.rollback("hall", 2)
+    assert store.change(cid).state == "published"
+
+
 def test_the_database_is_wal_with_foreign_keys(tmp_path: Path, hall: Path) -> None:
     new_store(tmp_path, hall).close()
     conn = sqlite3.connect(tmp_path / "maps" / "store.db")

@@ -121,6 +121,14 @@ MIGRATIONS: tuple[str, ...] = (
     CREATE INDEX change_events_by_change ON change_events(change_id);
     CREATE INDEX bundles_by_map ON bundles(map_id);
     """,
+    # 3: the version a rollback copied (NULL for others), so that the changes a version holds
+    # can be followed through rollbacks; the rollbacks made before it are read from their note.
+    """
+    ALTER TABLE versions ADD COLUMN copy_of INTEGER;
+    UPDATE versions SET copy_of = CAST(
+        substr(note, 21, instr(substr(note, 21) || ' ', ' ') - 1) AS INTEGER
+    ) WHERE note LIKE 'rollback to version %';
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 

@@ -282,9 +282,10 @@ class FleetStore:
         ]
 
     def rollback(self, name: str, version: int, *, actor: str = "operator") -> VersionInfo:
-        """Publish a NEW version equal to ``version``; history is never rewritten. Changes
-        published after it are no longer in the map: they become ``rejected`` (an operator
-        undid them), so that the same sightings do not publish them again."""
+        """Publish a NEW version equal to ``version``; history is never rewritten. Published
+        changes that ``version`` does not hold are no longer in the map: they become
+        ``rejected`` (an operator undid them), so that the same sightings do not publish them
+        again. Changes an earlier rollback undid that ``version`` holds are published again."""
         with self._writer():
             return self._rollback(name, version, actor)
 
@@ -295,13 +296,17 @@ class FleetStore:
             known = self._current_version(map_id)
             raise StoreError(f"map {name!r} has no version {version} (versions 1..{known})")
         state = load_map(source).state
-        undone = [
-            r[0]
-            for r in self._conn.execute(
-                "SELECT id FROM changes WHERE map_id = ? AND state = 'published' AND version > ?",
-                (map_id, version),
-            )
-        ]
+        held = self._held_by(map_id, version)
+        undone, redone = [], []
+        for cid, now in self._conn.execute(
+            "SELECT id, state FROM changes WHERE map_id = ? AND version IS NOT NULL "
+            "AND state IN ('published', 'rejected')",
+            (map_id,),
+        ).fetchall():
+            if now == "published" and cid not in held:
+                undone.append(cid)
+            elif now == "rejected" and cid in held:
+                redone.append(cid)  # only a rollback rejects a change that has a version
         new = self._publish_state(
             map_id,
             name,
@@ -310,10 +315,34 @@ class FleetStore:
             state,
             f"rollback to version {version} by {actor}",
             undone=undone,
+            redone=redone,
             actor=actor,
+            copy_of=version,
         )
         self._write_derived(name)
         return next(v for v in self.versions(name) if v.version == new)
+
+    def _held_by(self, map_id: int, version: int) -> set[int]:
+        """The changes version ``version`` holds: those published in it and in the versions it
+        was made from (the one before it, or for a rollback the version it copied)."""
+        parents = dict(
+            self._conn.execute(
+                "SELECT version, coalesce(copy_of, version - 1) FROM versions WHERE map_id = ?",
+                (map_id,),
+            ).fetchall()
+        )
+        lineage = []
+        while version >= 1:
+            lineage.append(version)
+            version = parents.get(version, version - 1)
+        return {
+            r[0]
+            for r in self._conn.execute(
+                "SELECT id FROM changes WHERE map_id = ? AND version IN "
+                f"({','.join('?' * len(lineage))})",
+                (map_id, *lineage),
+            )
+        }
 
     # -- changes ----------------------------------------------------------------------------
 
@@ -765,8 +794,10 @@ class FleetStore:
         *,
         published: Sequence[int] = (),
         undone: Sequence[int] = (),
+        redone: Sequence[int] = (),
         actor: str = "mapserver",
         expect: str | None = None,
+        copy_of: int | None = None,
     ) -> int:
         version = self._current_version(map_id) + 1
         folder = self.root / name
@@ -779,12 +810,10 @@ class FleetStore:
                 map_id,
                 version,
                 now,
-                yaml_path,
-                image,
-                digest,
-                note,
+                (yaml_path, image, digest, note, copy_of),
                 published,
                 undone,
+                redone,
                 actor,
                 expect,
             )
@@ -793,7 +822,7 @@ class FleetStore:
             for path in (yaml_path, image):
                 path.unlink(missing_ok=True)
             raise
-        self._dirty.update(published, undone)
+        self._dirty.update(published, undone, redone)
         frozen = state.copy()
         frozen.flags.writeable = False
         self._states[map_id] = (version, frozen)
@@ -806,20 +835,19 @@ class FleetStore:
         map_id: int,
         version: int,
         now: str,
-        yaml_path: Path,
-        image: Path,
-        digest: str,
-        note: str,
+        files: tuple[Path, Path, str, str, int | None],
         published: Sequence[int],
         undone: Sequence[int],
+        redone: Sequence[int],
         actor: str,
         expect: str | None,
     ) -> None:
+        yaml_path, image, digest, note, copy_of = files
         with transaction(self._conn):
             self._conn.execute(
-                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (map_id, version, now, yaml_path.name, image.name, digest, note),
+                "INSERT INTO versions (map_id, version, created_at, yaml, image, sha256, note, "
+                "copy_of) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (map_id, version, now, yaml_path.name, image.name, digest, note, copy_of),
             )
             for cid in published:
                 cur = self._conn.execute(
@@ -836,6 +864,12 @@ class FleetStore:
                     (f"undone by {note}", now, cid),
                 )
                 self._event(cid, actor, "rolled back", f"version {version}: {note}")
+            for cid in redone:
+                self._conn.execute(
+                    "UPDATE changes SET state = 'published', note = ?, updated_at = ? WHERE id = ?",
+                    (f"in the map again: {note}", now, cid),
+                )
+                self._event(cid, actor, "published", f"in version {version} again: {note}")
 
     def _write_derived(self, name: str, *, force: bool = False) -> None:
         """current.yaml (force), the keepout mask (when its cells changed) and changes.yaml."""
