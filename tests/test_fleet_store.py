@@ -59,6 +59,16 @@ def test_add_map_stores_version_1_byte_for_byte_and_current_points_at_it(
     assert [v.version for v in store.versions("hall")] == [1]
 
 
+def test_a_map_whose_image_is_already_in_the_store_is_refused(tmp_path: Path, hall: Path) -> None:
+    """Bundles find their map by the image's sha256 (session 44's review: the same building
+    added twice under two names split its evidence between them)."""
+    store = new_store(tmp_path, hall)
+    with pytest.raises(StoreError, match="already version 1 of map 'hall'"):
+        store.add_map("hall-copy", hall)
+    assert [m.name for m in store.maps()] == ["hall"]
+    assert not (tmp_path / "maps" / "hall-copy").exists()
+
+
 def test_a_person_seen_once_expires_when_the_next_bundle_sees_the_spot_free(
     tmp_path: Path, hall: Path
 ) -> None:

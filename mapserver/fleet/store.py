@@ -200,6 +200,18 @@ class FleetStore:
         map_yaml = Path(map_yaml)
         m = load_map(map_yaml, max_pixels=max_pixels)  # MapFileError with the loader's message
         image = map_yaml.parent / map_image_name(map_yaml)
+        same = self._conn.execute(
+            "SELECT m.name, v.version FROM versions v JOIN maps m ON m.id = v.map_id "
+            "WHERE v.sha256 = ? ORDER BY v.version LIMIT 1",
+            (sha256_file(image),),
+        ).fetchone()
+        if same is not None:
+            # Bundles find their map by its image's sha256: two maps with one image would
+            # feed the evidence of one building into whichever the lookup found first.
+            raise StoreError(
+                f"the image of {map_yaml} is already version {same[1]} of map {same[0]!r}: a "
+                f"map is registered once (see 'mapserver maps show {same[0]}')"
+            )
         document = yaml.safe_load(map_yaml.read_text(encoding="utf-8"))
         folder = self.root / name
         folder.mkdir(parents=True, exist_ok=True)
