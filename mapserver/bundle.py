@@ -34,6 +34,7 @@ from mapserver.errors import (
     no_such_path,
 )
 from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
+from mapserver.maps import MAX_MAP_YAML_BYTES
 
 MANIFEST = "bundle.yaml"
 # libyaml's loader when PyYAML was built with it: a manifest with a long trajectory parses
@@ -269,6 +270,12 @@ def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path
 def map_image_name(map_yaml: Path) -> str:
     """The ``image:`` entry of a map YAML, read without loading the image (for completeness)."""
     try:
+        size = map_yaml.stat().st_size
+        if size > MAX_MAP_YAML_BYTES:
+            raise BundleError(
+                f"map YAML is {size} bytes, larger than {MAX_MAP_YAML_BYTES}: is it a map YAML?",
+                file=map_yaml,
+            )
         data = yaml.load(map_yaml.read_text(encoding="utf-8"), Loader=_LOADER)
     except FileNotFoundError:
         raise BundleIncomplete("missing", file=map_yaml) from None

@@ -41,7 +41,9 @@ _REQUIRED_KEYS = ("image", "resolution", "origin", "negate", "occupied_thresh", 
 _MODES = ("trinary", "scale", "raw")
 
 # A map YAML is a handful of lines; anything this big is not one.
-_MAX_YAML_BYTES = 1 << 20
+MAX_MAP_YAML_BYTES = 1 << 16
+"""A map YAML is a few hundred bytes (six keys); one larger is refused before it is parsed (a
+megabyte of YAML takes a second to parse, in the daemon's main loop for the completeness check)."""
 # The first read of an image: enough for any sane PGM header (GIMP's comment line included) and
 # for a PNG's IHDR.
 _HEAD_BYTES = 1 << 16
@@ -359,12 +361,12 @@ def _show(value: Any) -> str:
 def _read_map_yaml(path: Path) -> _MapYaml:
     try:
         with _open_regular(path) as f:
-            data = _read_up_to(f, _MAX_YAML_BYTES + 1)
+            data = _read_up_to(f, MAX_MAP_YAML_BYTES + 1)
     except OSError as error:
         raise MapFileError(f"cannot read map YAML: {_os_reason(error)}", file=path) from None
-    if len(data) > _MAX_YAML_BYTES:
+    if len(data) > MAX_MAP_YAML_BYTES:
         raise MapFileError(
-            f"map YAML is larger than {_MAX_YAML_BYTES} bytes; is it a map YAML?", file=path
+            f"map YAML is larger than {MAX_MAP_YAML_BYTES} bytes; is it a map YAML?", file=path
         )
     try:
         document = yaml.safe_load(data)

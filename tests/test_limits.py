@@ -15,7 +15,7 @@ from mapserver.bundle import check_bundle_files, parse_manifest
 from mapserver.config import Config, LimitsConfig, parse_config
 from mapserver.errors import BundleError, ConfigError, MapFileError
 from mapserver.mapcache import MapCache
-from mapserver.maps import FREE, OCCUPIED, load_map, save_map
+from mapserver.maps import FREE, MAX_MAP_YAML_BYTES, OCCUPIED, load_map, save_map
 from mapserver.pipeline import process_bundle
 
 
@@ -107,6 +107,22 @@ def test_a_manifest_larger_than_the_limit_is_refused_unread(tmp_path: Path) -> N
     assert f"the manifest is {size} bytes, more than limits.max_manifest_bytes {size - 1}" in (
         caught.value.reason
     )
+
+
+def test_a_map_yaml_of_megabytes_is_refused_unparsed(tmp_path: Path) -> None:
+    """Session 44's review: the completeness check (the daemon's main loop) parsed a 16 MiB map
+    YAML for a minute. A map YAML is six keys; one past 64 KiB is not one."""
+    bundle = make_bundle(tmp_path / "run-1", checksums=False)
+    slam = bundle / yaml.safe_load((bundle / "bundle.yaml").read_text())["slam_map"]
+    text = slam.read_text()
+    slam.write_text(text + "# " + "x" * (MAX_MAP_YAML_BYTES - len(text) - 3) + "\n")
+    assert slam.stat().st_size == MAX_MAP_YAML_BYTES
+    assert check_bundle_files(bundle)  # at the limit: read
+    slam.write_text(text + "junk: [" + "1, " * 400_000 + "1]\n")
+    with pytest.raises(BundleError, match="larger than 65536: is it a map YAML"):
+        check_bundle_files(bundle)
+    with pytest.raises(MapFileError, match="larger than 65536 bytes"):
+        load_map(slam)
 
 
 def test_limits_in_the_configuration_are_checked(tmp_path: Path) -> None:
