@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from mapserver.bundle import sha256_file
+from mapserver.errors import MapFileError
 from mapserver.maps import OccupancyMap, load_map
 
 # How many image digests a cache remembers (a few per map in use: the bundles' copies).
@@ -45,16 +46,24 @@ class MapCache:
         for whoever asks again: the fleet map's lookup)."""
         if known:
             return known.lower()
-        st = Path(image_path).stat()
-        key = (str(image_path), st.st_size, st.st_mtime_ns)
-        with self._lock:
-            found = self._digests.get(key)
-        if found is None:
-            found = sha256_file(image_path)
+        try:
+            st = Path(image_path).stat()
+            key = (str(image_path), st.st_size, st.st_mtime_ns)
             with self._lock:
-                self._digests[key] = found
-                while len(self._digests) > _DIGESTS_KEPT:
-                    self._digests.popitem(last=False)
+                found = self._digests.get(key)
+            if found is not None:
+                return found
+            found = sha256_file(image_path)
+        except OSError as error:
+            # An image the daemon may not read (another user's mode 0600 file): the bundle's
+            # fault, said so, not "failed unexpectedly, please report" (session 44's review).
+            raise MapFileError(
+                f"cannot read image: {error.strerror or error}", file=image_path
+            ) from None
+        with self._lock:
+            self._digests[key] = found
+            while len(self._digests) > _DIGESTS_KEPT:
+                self._digests.popitem(last=False)
         return found
 
     def load(

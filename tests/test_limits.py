@@ -144,3 +144,27 @@ def test_a_bundle_with_a_nanometre_map_fails_at_load_with_the_reason_not_in_alig
     assert caught.value.stage == "load"
     assert "slam_map.yaml: 'resolution' 1e-09 m per cell is outside" in caught.value.reason
     assert "report" not in caught.value.reason
+
+
+def test_a_map_image_the_daemon_may_not_read_fails_at_load_saying_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Session 44's review: an image of mode 0600 owned by another user failed the bundle with
+    "load failed unexpectedly (PermissionError ...) please report this bundle". (Root reads
+    anything, so the hash's open is made to refuse it here.)"""
+    import mapserver.mapcache
+
+    bundle = make_bundle(tmp_path / "run-1", checksums=False)
+    real = mapserver.mapcache.sha256_file
+
+    def sha256_file(path: Path) -> str:
+        if Path(path).name.endswith(".pgm"):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+
+    monkeypatch.setattr(mapserver.mapcache, "sha256_file", sha256_file)
+    with pytest.raises(MapFileError) as caught:
+        process_bundle(bundle, Config())
+    assert caught.value.stage == "load"
+    assert "cannot read image: Permission denied" in caught.value.reason
+    assert "report" not in caught.value.reason
