@@ -480,7 +480,11 @@ def _diff_masks(
         # robot saw displaced.
         walls = structure | (global_state == OCCUPIED)
         added = diff_stage.drop_along_walls(
-            filtered.added, walls, resolution=grid.resolution, within_m=d.along_wall_m
+            filtered.added,
+            walls,
+            resolution=grid.resolution,
+            within_m=d.along_wall_m,
+            local_state=local_state,
         )
         filtered = diff_stage.DiffMasks(added, filtered.removed)
     on_route, ray_m = None, 0.0

@@ -511,6 +511,69 @@ def test_an_obstacle_against_a_wall_that_reaches_out_is_kept() -> None:
     assert not kept[47, 60:80].any()
 
 
+def _wall_seen(face_offset: np.ndarray, *, behind: int) -> tuple[np.ndarray, np.ndarray]:
+    """The hall's long wall (rows 40-42) as a local map sees it: per column, its face
+    ``face_offset`` cells out from the drawn face (row 43 + offset), the floor in front of it
+    free, the cells between the drawn face and it ``behind`` (UNKNOWN: not seen, FREE: seen).
+    Returns the local state and the added mask the raw difference makes of it (its cells more
+    than 0.15 m, three cells, from the wall)."""
+    local = np.full((120, 120), FREE, np.uint8)
+    local[:43, :] = UNKNOWN  # the wall's inside and beyond
+    local[40:43, :] = OCCUPIED
+    added = np.zeros(local.shape, bool)
+    for col, offset in enumerate(face_offset):
+        local[43 : 43 + offset, col] = behind
+        local[43 + offset, col] = OCCUPIED
+        added[43 + offset, col] = offset > 3
+    return local, added
+
+
+def test_an_obstacle_standing_in_front_of_a_wall_is_kept() -> None:
+    # Shelves 0.2 m deep and 3 m long put against the wall: the face steps out by four cells
+    # and back in at its ends, the wall behind them unseen.
+    walls = _hall()
+    offset = np.zeros(120, int)
+    offset[30:90] = 4
+    local, added = _wall_seen(offset, behind=UNKNOWN)
+    assert added[47, 30:90].all()
+    # Without the local map it is a wall seen displaced along itself; with it, it stands.
+    assert not drop_along_walls(added, walls, resolution=RES, within_m=0.35).any()
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35, local_state=local)
+    assert np.array_equal(kept, added)
+    # Shorter than a metre along the wall: too little to tell from a face drawn out.
+    short = np.zeros(120, int)
+    short[30:48] = 4
+    local, added = _wall_seen(short, behind=UNKNOWN)
+    assert added.any()
+    assert not drop_along_walls(
+        added, walls, resolution=RES, within_m=0.35, local_state=local
+    ).any()
+
+
+def test_a_face_drawn_twice_with_the_floor_seen_between_is_dropped() -> None:
+    # A pass with drift left in it draws the face again 0.2 m out; another pass saw the floor
+    # between the two lines free: the same steps at the ends, but nothing stands there.
+    walls = _hall()
+    offset = np.zeros(120, int)
+    offset[30:90] = 4
+    local, added = _wall_seen(offset, behind=FREE)
+    local[43, 30:90] = OCCUPIED  # the face in place, seen by the first pass
+    assert not drop_along_walls(
+        added, walls, resolution=RES, within_m=0.35, local_state=local
+    ).any()
+
+
+def test_a_face_displaced_smoothly_by_drift_is_dropped() -> None:
+    # Drift moves the face out and back over metres (a cell every 0.4 m), never in a step.
+    walls = _hall()
+    offset = np.minimum(np.minimum(np.arange(120), 119 - np.arange(120)) // 8, 5)
+    local, added = _wall_seen(offset, behind=UNKNOWN)
+    assert added.sum() > 40
+    assert not drop_along_walls(
+        added, walls, resolution=RES, within_m=0.35, local_state=local
+    ).any()
+
+
 def test_a_piece_closing_a_doorway_is_kept() -> None:
     walls = _hall()
     added = np.zeros(walls.shape, bool)
