@@ -28,7 +28,7 @@ _STAGE_BYTES = 16
 FAULT_ENV = "MAPSERVER_TEST_FAULT"
 """Test hook: ``<bundle id>@<stage>=<fault>``, comma-separated. A worker entering that stage of
 that bundle hangs (``hang``), grows its resident memory past ``worker_memory_mb`` and holds it
-(``hog``), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
+(``hog``, with the worker's address-space limit lifted: the main process's watch tested), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
 tested on a real daemon."""
 
 
@@ -175,6 +175,14 @@ def inject_fault(fault: str, *, memory_limit_mb: int) -> None:
         np.ones(2 * limit, np.uint8)
     held = []
     if fault == "hog":
+        # The main process's watch of resident memory is what a hog tests: the address-space
+        # limit lifted, as where it cannot be set. Under it, the hog's room depended on how much
+        # the worker had mapped before the stage (the main process's heap it was forked with
+        # among it): some runs failed with MemoryError before they were seen.
+        import resource
+
+        _, hard = resource.getrlimit(resource.RLIMIT_AS)
+        resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
         while (resident_bytes(os.getpid()) or 0) < limit + 32 * 2**20:
             held.append(np.ones(8 * 2**20, np.uint8))  # written: resident, not just mapped
     while True:  # hang (and hold what it took) until the main process stops this worker
