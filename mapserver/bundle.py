@@ -176,11 +176,69 @@ class Manifest(_Model):
         return [p.to_pose() for p in self.trajectory or []]
 
 
+def _without_trajectory(text: str) -> tuple[str, int] | None:
+    """``text`` (a manifest) with the value of its top-level ``trajectory`` replaced by null,
+    and how many poses that value held; None when it has no such key holding a collection, or
+    its YAML cannot be read (the full parse says why).
+
+    Found from the parser's events, which libyaml makes ten times faster than the objects of a
+    full load (100,000 poses: 0.5 s against 4.4 s on 2 cores); their marks index characters of
+    ``text``."""
+    depth = 0  # collections open
+    top = 0  # nodes seen directly in the top-level mapping: keys, then values
+    key: object = None
+    cut_from: int | None = None
+    poses = 0
+    try:
+        for event in yaml.parse(text, Loader=_LOADER):
+            if isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+                if cut_from is not None and depth == 1:
+                    assert event.end_mark is not None
+                    # A line of its own: a block sequence ends where the next key starts.
+                    return text[:cut_from] + " null\n" + text[event.end_mark.index :], poses
+                continue
+            if not isinstance(event, yaml.NodeEvent):
+                continue  # the stream's and the document's own events
+            if depth == 0 and not isinstance(event, yaml.MappingStartEvent):
+                return None  # not a mapping: the full parse says so
+            if depth == 1:
+                if top % 2 == 0:
+                    key = getattr(event, "value", None)
+                elif key == "trajectory" and isinstance(event, yaml.CollectionStartEvent):
+                    assert event.start_mark is not None
+                    cut_from = event.start_mark.index
+                top += 1
+            elif depth == 2 and cut_from is not None:
+                poses += 1  # an item of the trajectory
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+    except yaml.YAMLError:
+        return None
+    return None
+
+
 def parse_manifest(
-    text: str, *, source: str | Path = MANIFEST, limits: LimitsConfig = _LIMITS
+    text: str,
+    *,
+    source: str | Path = MANIFEST,
+    limits: LimitsConfig = _LIMITS,
+    trajectory: bool = True,
 ) -> Manifest:
     """Parse and validate the text of ``bundle.yaml``; errors name the field. A trajectory
-    longer than ``limits.max_trajectory_poses`` is refused before its poses are validated."""
+    longer than ``limits.max_trajectory_poses`` is refused before its poses are validated.
+
+    ``trajectory=False``: its poses are counted, not read (the manifest returned has none): what
+    the daemon's main loop checks of an upload, where a trajectory of 100,000 poses took 4-8 s
+    to load; the worker reads the whole manifest."""
+    if not trajectory:
+        cut = _without_trajectory(text)
+        if cut is not None:
+            _refuse_long_trajectory(cut[1], source, limits)
+            try:
+                return parse_manifest(cut[0], source=source, limits=limits)
+            except BundleError:
+                pass  # the whole text's parse names the problem where it lies
     try:
         data = yaml.load(text, Loader=_LOADER)
     except yaml.YAMLError as error:
@@ -188,22 +246,29 @@ def parse_manifest(
         raise BundleError(f"not valid YAML: {problem}", file=source) from None
     if not isinstance(data, dict):
         raise BundleError("the manifest must be a mapping of keys to values", file=source)
-    trajectory = data.get("trajectory")
-    if isinstance(trajectory, list) and len(trajectory) > limits.max_trajectory_poses:
-        raise BundleError(
-            f"the trajectory has {len(trajectory)} poses, more than limits.max_trajectory_poses "
-            f"{limits.max_trajectory_poses}: send fewer (one pose every 10-20 cm is plenty)",
-            file=source,
-        )
+    poses = data.get("trajectory")
+    if isinstance(poses, list):
+        _refuse_long_trajectory(len(poses), source, limits)
     try:
         return Manifest.model_validate(data)
     except ValidationError as error:
         raise BundleError(describe_validation(error), file=source) from None
 
 
-def read_manifest(bundle_dir: Path, *, limits: LimitsConfig = _LIMITS) -> Manifest:
+def _refuse_long_trajectory(poses: int, source: str | Path, limits: LimitsConfig) -> None:
+    if poses > limits.max_trajectory_poses:
+        raise BundleError(
+            f"the trajectory has {poses} poses, more than limits.max_trajectory_poses "
+            f"{limits.max_trajectory_poses}: send fewer (one pose every 10-20 cm is plenty)",
+            file=source,
+        )
+
+
+def read_manifest(
+    bundle_dir: Path, *, limits: LimitsConfig = _LIMITS, trajectory: bool = True
+) -> Manifest:
     """Read and parse ``bundle.yaml``; one larger than ``limits.max_manifest_bytes`` is refused
-    before it is read."""
+    before it is read. ``trajectory=False``: its poses counted, not read (:func:`parse_manifest`)."""
     path = bundle_dir / MANIFEST
     try:
         size = path.stat().st_size
@@ -218,7 +283,7 @@ def read_manifest(bundle_dir: Path, *, limits: LimitsConfig = _LIMITS) -> Manife
         raise BundleIncomplete("no bundle.yaml yet", file=path) from None
     except (OSError, UnicodeDecodeError) as error:
         raise BundleError(f"cannot read the manifest: {error}", file=path) from None
-    return parse_manifest(text, source=path, limits=limits)
+    return parse_manifest(text, source=path, limits=limits, trajectory=trajectory)
 
 
 def check_bundle_dir(path: Path) -> None:
@@ -312,7 +377,11 @@ class BundleFiles:
 
 
 def check_bundle_files(
-    bundle_dir: Path, *, verify_checksums: bool = True, limits: LimitsConfig = _LIMITS
+    bundle_dir: Path,
+    *,
+    verify_checksums: bool = True,
+    limits: LimitsConfig = _LIMITS,
+    trajectory: bool = True,
 ) -> BundleFiles:
     """Check that the manifest parses, every file it names is present and every listed checksum
     matches (with ``verify_checksums=False``: that every checksummed file is present, for a
@@ -321,8 +390,9 @@ def check_bundle_files(
     Raises :class:`BundleIncomplete` while a file is missing or a checksum does not match (the
     upload may still be going on) and :class:`BundleError` for a bundle that can never be right.
     The settle time (nothing changed for a while) is the caller's business.
+    ``trajectory=False``: the trajectory's poses are counted, not read (:func:`parse_manifest`).
     """
-    manifest = read_manifest(bundle_dir, limits=limits)
+    manifest = read_manifest(bundle_dir, limits=limits, trajectory=trajectory)
     source = bundle_dir / MANIFEST
     yamls: dict[str, Path | None] = {"slam": None, "nav2": None}
     images: dict[str, Path | None] = {"slam": None, "nav2": None}

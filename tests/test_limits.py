@@ -97,6 +97,43 @@ def test_a_trajectory_longer_than_the_limit_is_refused_before_its_poses_are_read
     )
 
 
+@pytest.mark.parametrize("flow", [False, True], ids=["block", "flow"])
+def test_the_daemon_s_check_counts_a_trajectory_s_poses_without_reading_them(flow: bool) -> None:
+    """``trajectory=False`` (the daemon's main loop): the manifest without its trajectory, the
+    same as the whole parse otherwise, whether the trajectory comes first or last, in block or
+    flow style; the count is checked as before; a bad pose is left to the worker's parse."""
+    limits = LimitsConfig(max_trajectory_poses=3)
+    poses = [{"x": i, "y": 0.5, "yaw": 0.1} for i in range(3)]
+    whole = parse_manifest(manifest(trajectory=poses), limits=limits)
+    for text in (
+        yaml.safe_dump({"trajectory": poses, **yaml.safe_load(manifest())}, sort_keys=False),
+        manifest(trajectory=poses) + "# the end\n",
+    ):
+        if flow:
+            text = yaml.safe_dump(yaml.safe_load(text), default_flow_style=True, sort_keys=False)
+        light = parse_manifest(text, limits=limits, trajectory=False)
+        assert light.trajectory is None
+        assert light.model_copy(update={"trajectory": whole.trajectory}) == whole
+    with pytest.raises(BundleError, match="the trajectory has 4 poses, more than"):
+        parse_manifest(manifest(trajectory=[*poses, "junk"]), limits=limits, trajectory=False)
+    broken = manifest(trajectory=[poses[0], {"x": 1}])
+    assert parse_manifest(broken, trajectory=False).trajectory is None
+    with pytest.raises(BundleError, match="trajectory"):
+        parse_manifest(broken)
+
+
+def test_a_manifest_the_quick_check_cannot_read_gets_the_whole_parse_s_reason() -> None:
+    """A trajectory that another key refers to (a YAML alias), cut out by the quick check, is
+    not a problem of its own: the reason given is the whole parse's (an unknown key)."""
+    text = manifest() + "trajectory: &route [{x: 0, y: 0, yaw: 0}]\nagain: *route\n"
+    with pytest.raises(BundleError) as whole:
+        parse_manifest(text)
+    with pytest.raises(BundleError) as quick:
+        parse_manifest(text, trajectory=False)
+    assert quick.value.reason == whole.value.reason
+    assert "again" in whole.value.reason
+
+
 def test_a_manifest_larger_than_the_limit_is_refused_unread(tmp_path: Path) -> None:
     bundle = make_bundle(tmp_path / "run-1")
     size = (bundle / "bundle.yaml").stat().st_size

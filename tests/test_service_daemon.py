@@ -329,6 +329,9 @@ BAD = [
     ("resolution-tiny", _map_yaml(resolution=1e-9), "load", "limits.min_resolution_m"),
     ("map-too-wide", _map_yaml(resolution=0.9), "load", "limits.max_map_extent_m"),
     ("trajectory-too-long", _manifest(trajectory=[[0, 0, 0]] * 60), "bundle", "max_trajectory"),
+    # Only counted in the main loop (a 100,000-pose trajectory held it for seconds): the worker
+    # reads the poses and fails the bundle.
+    ("bad-pose", _manifest(trajectory=[{"x": 0, "y": 0, "yaw": "north"}]), "bundle", "yaw"),
     ("manifest-too-big", _pad_manifest, "bundle", "limits.max_manifest_bytes"),
     ("checksum-mismatch", _bad_checksum, "upload", "sha256"),
     ("never-complete", _never_complete, "upload", "slam_map"),
