@@ -13,6 +13,7 @@ before and after the rest of the slot.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
@@ -28,8 +29,9 @@ _STAGE_BYTES = 16
 FAULT_ENV = "MAPSERVER_TEST_FAULT"
 """Test hook: ``<bundle id>@<stage>=<fault>``, comma-separated. A worker entering that stage of
 that bundle hangs (``hang``), grows its resident memory past ``worker_memory_mb`` and holds it
-(``hog``, with the worker's address-space limit lifted: the main process's watch tested), or asks for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits,
-tested on a real daemon."""
+(``hog``, the worker's address-space limit lifted: the main process's watch tested), or asks
+for twice ``worker_memory_mb`` at once (``alloc``): the time and memory limits, tested on a
+real daemon."""
 
 
 class _Slot(ctypes.Structure):
@@ -182,7 +184,8 @@ def inject_fault(fault: str, *, memory_limit_mb: int) -> None:
         import resource
 
         _, hard = resource.getrlimit(resource.RLIMIT_AS)
-        resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
+        with contextlib.suppress(OSError):  # not set either, where it cannot be
+            resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
         while (resident_bytes(os.getpid()) or 0) < limit + 32 * 2**20:
             held.append(np.ones(8 * 2**20, np.uint8))  # written: resident, not just mapped
     while True:  # hang (and hold what it took) until the main process stops this worker
