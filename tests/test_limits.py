@@ -134,6 +134,21 @@ def test_a_manifest_the_quick_check_cannot_read_gets_the_whole_parse_s_reason() 
     assert "again" in whole.value.reason
 
 
+def test_the_quick_check_leaves_what_it_cannot_cut_to_the_whole_parse() -> None:
+    """A trajectory given twice (YAML keeps the last), or given as a mapping: the whole parse
+    decides, the same with or without the poses read. A value YAML cannot construct
+    (``!!float abc``, a ValueError inside PyYAML) is a bundle error, not a crash."""
+    limits = LimitsConfig(max_trajectory_poses=3)
+    poses = [{"x": i, "y": 0, "yaw": 0} for i in range(4)]
+    twice = manifest(trajectory=poses) + "trajectory: []\n"
+    for quick in (False, True):
+        assert parse_manifest(twice, limits=limits, trajectory=not quick).trajectory in ([], None)
+        with pytest.raises(BundleError, match="'trajectory': Input should be a valid list"):
+            parse_manifest(manifest(trajectory={"a": 1, "b": 2}), trajectory=not quick)
+        with pytest.raises(BundleError, match="not valid YAML: could not convert"):
+            parse_manifest(manifest().replace("x: 0", "x: !!float abc", 1), trajectory=not quick)
+
+
 def test_a_manifest_larger_than_the_limit_is_refused_unread(tmp_path: Path) -> None:
     bundle = make_bundle(tmp_path / "run-1")
     size = (bundle / "bundle.yaml").stat().st_size
