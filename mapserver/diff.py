@@ -1314,12 +1314,13 @@ _IN_FRONT_MIN_LENGTH_M = 1.0
 # ... its face looked for this far beyond its component's ends (a part of its face may lie
 # within the tolerance of the wall, not added)...
 _FACE_RUN_M = 2.0
-# ... where the local face steps back into place within this distance along the wall (drift
-# displaces a face over metres, never back in place this close to where it stood out)...
+# ... where the local face steps back from where it stands (less a cell of slack) at least this
+# far towards the wall (and two cells: on a 0.1 m map a 0.2 m shelf is too shallow to tell)...
+_STEP_BACK_M = 0.1
+# ... within this distance along the wall (drift displaces a face over metres, never back this
+# close to where it stood out)...
 _STEP_M = 0.15
-# ... and stays there, at most this far out of the global face (at least one cell)...
-_IN_PLACE_M = 0.05
-# ... over this distance beyond the step, at this share of the positions at least...
+# ... and stays back over this distance beyond the step, seen at this share of it at least...
 _BEYOND_STEP_M = 0.3
 _IN_PLACE_SHARE = 0.6
 # ... and at most this share of the known cells between it and the wall seen free (the robot
@@ -1334,73 +1335,86 @@ def _stands_in_front(
     window with room around it) are an obstacle standing in front of that wall rather than the
     wall's face seen displaced: at least ``_IN_FRONT_MIN_LENGTH_M`` long along the wall, the
     floor between it and the wall not seen free (``_BEHIND_FREE_SHARE``), and on each side,
-    within ``_FACE_RUN_M`` beyond its end, the local map's face stepping back into place
-    (from out where the component stands to within ``_IN_PLACE_M`` of the global face, within
-    ``_STEP_M`` along the wall) and staying there for ``_BEYOND_STEP_M``."""
-    rows, cols = np.nonzero(cells)
-    dist = distance_to(walls)
-    # The direction away from the wall: from the wall's nearest cells to the component's.
-    src = np.ascontiguousarray(~walls).view(np.uint8)
-    _, nearest = cv2.distanceTransformWithLabels(
-        src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    zr, zc = np.nonzero(src == 0)
-    k = nearest[rows, cols] - 1
-    away = np.array([np.mean(cols - zc[k]), np.mean(rows - zr[k])], float)
-    if not np.hypot(*away):
-        return False
-    nx, ny = away / np.hypot(*away)
-    tx, ty = -ny, nx
+    within ``_FACE_RUN_M`` beyond its end, the local map's face stepping back towards the wall
+    by ``_STEP_BACK_M`` (two cells at least) within ``_STEP_M`` along it and staying back,
+    seen, for ``_BEYOND_STEP_M``.
+
+    Measured across the component's own line (its cells' main axis), from the wall's face
+    there (where its cells' distance to the wall puts it): a slanted wall is measured as a
+    straight one, and the component's typical offset, not its farthest cell, is where it
+    stands (a box on a shelf reaches further)."""
     res = resolution
-    s = cols * tx + rows * ty
-    if (s.max() - s.min() + 1) * res < _IN_FRONT_MIN_LENGTH_M:
+    box = box_around(cells, math.ceil((_FACE_RUN_M + _BEYOND_STEP_M) / res) + 2)
+    if box is None:
         return False
-    # Offsets out of the wall's face: u - dist is where the face lies, the same all along a
-    # straight wall.
-    u = cols * nx + rows * ny
-    face = float(np.median(u - dist[rows, cols]))
-    depth = float(np.max(u - face))
+    cells, walls, local_state = cells[box], walls[box], local_state[box]
+    rows, cols = nonzero_cells(cells)
+    dist = distance_to(walls)
+    centre, axis = main_axis(np.stack([rows, cols], 1).astype(np.float64))
+    normal = square_to(axis)  # (row, col), away from the wall: the way the distance grows
+    offset = (rows - centre[0]) * normal[0] + (cols - centre[1]) * normal[1]
+    if np.dot(offset - offset.mean(), dist[rows, cols] - dist[rows, cols].mean()) < 0:
+        normal, offset = -normal, -offset
+    along = (rows - centre[0]) * axis[0] + (cols - centre[1]) * axis[1]
+    if (along.max() - along.min() + 1) * res < _IN_FRONT_MIN_LENGTH_M:
+        return False
+    face = float(np.median(offset - dist[rows, cols]))
+    depth = float(np.median(offset)) - face  # where it stands, in cells from the face
+    farthest = float(offset.max()) - face
     h, w = cells.shape
     rr, cc = np.mgrid[0:h, 0:w]
-    ss, uu = cc * tx + rr * ty, cc * nx + rr * ny - face
-    behind = (ss >= s.min()) & (ss <= s.max()) & (uu > 0.5) & (uu < depth - 0.5)
+    ss = (rr - centre[0]) * axis[0] + (cc - centre[1]) * axis[1]
+    uu = (rr - centre[0]) * normal[0] + (cc - centre[1]) * normal[1] - face
+    behind = (ss >= along.min()) & (ss <= along.max()) & (uu > 0.5) & (uu < depth - 0.5)
     behind &= ~walls & ~cells
     known = behind & (local_state != UNKNOWN)
     if known.any() and np.mean(local_state[known] == FREE) > _BEHIND_FREE_SHARE:
         return False
     # The local face's profile beyond each end: per whole cell along the wall, the outermost
     # local wall cell in the band from the global face out to the component.
-    band = (uu > -1.5) & (uu <= depth + 1) & (local_state == OCCUPIED)
-    out_px = depth - max(1.0, _STEP_M / res)  # still standing out (a cell of slack)
-    in_place_px = max(1.0, _IN_PLACE_M / res)
+    band = (uu > -1.5) & (uu <= farthest + 1) & (local_state == OCCUPIED)
+    out_px = depth - 1  # still standing out (a cell of slack)
+    back_px = out_px - max(2.0, _STEP_BACK_M / res)
     step_px, run_px = max(1, round(_STEP_M / res)), max(2, round(_BEYOND_STEP_M / res))
-    for start, sign in ((s.max(), 1.0), (s.min(), -1.0)):
-        along = np.round((ss - start) * sign).astype(np.intp)
-        reach = round(_FACE_RUN_M / res) + run_px
-        sel = band & (along >= 0) & (along <= reach)
+    reach = round(_FACE_RUN_M / res) + run_px
+    for start, sign in ((along.max(), 1.0), (along.min(), -1.0)):
+        beyond = np.round((ss - start) * sign).astype(np.intp)
+        sel = band & (beyond >= 0) & (beyond <= reach)
         profile = np.full(reach + 1, -np.inf)
-        np.maximum.at(profile, along[sel], uu[sel])
-        if not _steps_back(profile, out_px, in_place_px, step_px, run_px):
+        np.maximum.at(profile, beyond[sel], uu[sel])
+        # The wall beside an end may lie in the obstacle's shadow: at most as far along the
+        # wall as it stands out, seen from 45 degrees or more.
+        if not _steps_back(profile, out_px, back_px, step_px, run_px, math.floor(depth)):
             return False
     return True
 
 
 def _steps_back(
-    profile: NDArray[np.float64], out_px: float, in_place_px: float, step_px: int, run_px: int
+    profile: NDArray[np.float64],
+    out_px: float,
+    back_px: float,
+    step_px: int,
+    run_px: int,
+    shadow_px: int = 0,
 ) -> bool:
     """Whether a face's ``profile`` (its offset from the wall per cell along it, -inf where no
-    wall was seen) goes from standing out (``out_px`` or more) into place (``in_place_px`` or
-    less) within ``step_px`` cells and stays in place over the ``run_px`` cells from there, at
-    ``_IN_PLACE_SHARE`` of them (seen and in place)."""
+    wall was seen) goes from standing out (``out_px`` or more) back (to ``back_px`` or less)
+    within ``step_px`` cells and stays back over the ``run_px`` cells from there, at
+    ``_IN_PLACE_SHARE`` of them (seen and back). Cells where no wall was seen between the two
+    do not count as cells of the step, up to ``shadow_px``."""
     out = np.flatnonzero(profile >= out_px)
     for last in out[::-1]:
-        after = profile[last + 1 : last + 1 + step_px + run_px]
-        first = np.flatnonzero(after <= in_place_px)
-        if not len(first) or first[0] >= step_px:
+        after = profile[last + 1 : last + 1 + step_px + shadow_px + run_px]
+        first = np.flatnonzero(np.isfinite(after) & (after <= back_px))  # seen back
+        # Cells where no wall was seen (the obstacle's shadow on the wall beside its end) do
+        # not count against the step, up to shadow_px of them.
+        if not len(first) or np.isfinite(after[: first[0]]).sum() >= step_px:
+            continue
+        if first[0] >= step_px + shadow_px:
             continue
         run = after[first[0] : first[0] + run_px]
-        seen_in_place = np.isfinite(run) & (run <= in_place_px)
-        if len(run) == run_px and np.mean(seen_in_place) >= _IN_PLACE_SHARE:
+        seen_back = np.isfinite(run) & (run <= back_px)
+        if len(run) == run_px and np.mean(seen_back) >= _IN_PLACE_SHARE:
             return bool(np.all(profile[last + 1 :][: first[0] + run_px] < out_px))
     return False
 
