@@ -274,7 +274,8 @@ def read_manifest(
     bundle_dir: Path, *, limits: LimitsConfig = _LIMITS, trajectory: bool = True
 ) -> Manifest:
     """Read and parse ``bundle.yaml``; one larger than ``limits.max_manifest_bytes`` is refused
-    before it is read. ``trajectory=False``: its poses counted, not read (:func:`parse_manifest`)."""
+    before it is read. ``trajectory=False``: its poses counted, not read
+    (:func:`parse_manifest`)."""
     path = bundle_dir / MANIFEST
     try:
         size = path.stat().st_size

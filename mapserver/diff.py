@@ -1287,20 +1287,18 @@ def drop_along_walls(
     out = added.copy()
     if not walls.any():
         return out
-    # Room for the reach, for the nearest wall to be found inside the window, and for the face
-    # beyond a component's ends (_FACE_RUN_M).
-    m = (
-        max(
-            math.ceil(within_m / resolution), math.ceil((_FACE_RUN_M + _BEYOND_STEP_M) / resolution)
-        )
-        + 2
-    )
+    # Room for the reach, and for the nearest wall to be found inside the window.
+    m = math.ceil(within_m / resolution) + 2
     for window, labels in _component_windows(out, m):
         n = int(labels.max()) + 1
         along = _along_one_wall(labels, walls[window], n, resolution, within_m, min_agreement)
-        if local_state is not None:
+        if local_state is not None and along.any():
+            rows, cols = nonzero_cells(labels > 0)
+            label = labels[rows, cols]
+            rows, cols = rows + window[0].start, cols + window[1].start  # on the whole grid
             for k in np.flatnonzero(along):
-                if _stands_in_front(labels == k, walls[window], local_state[window], resolution):
+                at = label == k
+                if _stands_in_front(rows[at], cols[at], walls, local_state, resolution):
                     along[k] = False
         out[window][along[labels] & (labels > 0)] = False
     return out
@@ -1329,11 +1327,15 @@ _BEHIND_FREE_SHARE = 0.25
 
 
 def _stands_in_front(
-    cells: BoolArray, walls: BoolArray, local_state: NDArray[np.uint8], resolution: float
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    resolution: float,
 ) -> bool:
-    """Whether the added cells ``cells`` (one component lying along one wall of ``walls``, in a
-    window with room around it) are an obstacle standing in front of that wall rather than the
-    wall's face seen displaced: at least ``_IN_FRONT_MIN_LENGTH_M`` long along the wall, the
+    """Whether the added cells at ``rows``, ``cols`` (one component lying along one wall of
+    ``walls``, on the whole grid; worked out in a box around them) are an obstacle standing in
+    front of that wall rather than the wall's face seen displaced: at least ``_IN_FRONT_MIN_LENGTH_M`` long along the wall, the
     floor between it and the wall not seen free (``_BEHIND_FREE_SHARE``), and on each side,
     within ``_FACE_RUN_M`` beyond its end, the local map's face stepping back towards the wall
     by ``_STEP_BACK_M`` (two cells at least) within ``_STEP_M`` along it and staying back,
@@ -1344,27 +1346,30 @@ def _stands_in_front(
     straight one, and the component's typical offset, not its farthest cell, is where it
     stands (a box on a shelf reaches further)."""
     res = resolution
-    box = box_around(cells, math.ceil((_FACE_RUN_M + _BEYOND_STEP_M) / res) + 2)
-    if box is None:
-        return False
-    cells, walls, local_state = cells[box], walls[box], local_state[box]
-    rows, cols = nonzero_cells(cells)
-    dist = distance_to(walls)
     centre, axis = main_axis(np.stack([rows, cols], 1).astype(np.float64))
-    normal = square_to(axis)  # (row, col), away from the wall: the way the distance grows
-    offset = (rows - centre[0]) * normal[0] + (cols - centre[1]) * normal[1]
-    if np.dot(offset - offset.mean(), dist[rows, cols] - dist[rows, cols].mean()) < 0:
-        normal, offset = -normal, -offset
     along = (rows - centre[0]) * axis[0] + (cols - centre[1]) * axis[1]
     if (along.max() - along.min() + 1) * res < _IN_FRONT_MIN_LENGTH_M:
         return False
-    face = float(np.median(offset - dist[rows, cols]))
+    box = box_of_cells(rows, cols, math.ceil((_FACE_RUN_M + _BEYOND_STEP_M) / res) + 2, walls.shape)
+    walls, local_state = walls[box], local_state[box]
+    rows, cols = rows - box[0].start, cols - box[1].start
+    centre = centre - (box[0].start, box[1].start)
+    cells = np.zeros(walls.shape, bool)
+    cells[rows, cols] = True
+    dist = distance_to(walls)[rows, cols]
+    # Every cell of the box along the component's line (ss) and across it, away from the wall
+    # (uu: the way the cells' distance to the wall grows).
+    rr, cc = np.mgrid[0 : walls.shape[0], 0 : walls.shape[1]]
+    ss = (rr - centre[0]) * axis[0] + (cc - centre[1]) * axis[1]
+    normal = square_to(axis)
+    uu = (rr - centre[0]) * normal[0] + (cc - centre[1]) * normal[1]
+    offset = uu[rows, cols]
+    if np.dot(offset - offset.mean(), dist - dist.mean()) < 0:
+        uu, offset = -uu, -offset
+    face = float(np.median(offset - dist))
     depth = float(np.median(offset)) - face  # where it stands, in cells from the face
     farthest = float(offset.max()) - face
-    h, w = cells.shape
-    rr, cc = np.mgrid[0:h, 0:w]
-    ss = (rr - centre[0]) * axis[0] + (cc - centre[1]) * axis[1]
-    uu = (rr - centre[0]) * normal[0] + (cc - centre[1]) * normal[1] - face
+    uu -= face
     behind = (ss >= along.min()) & (ss <= along.max()) & (uu > 0.5) & (uu < depth - 0.5)
     behind &= ~walls & ~cells
     known = behind & (local_state != UNKNOWN)

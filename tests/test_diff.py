@@ -512,20 +512,22 @@ def test_an_obstacle_against_a_wall_that_reaches_out_is_kept() -> None:
     assert not kept[47, 60:80].any()
 
 
-def _wall_seen(face_offset: np.ndarray, *, behind: int) -> tuple[np.ndarray, np.ndarray]:
-    """The hall's long wall (rows 40-42) as a local map sees it: per column, its face
-    ``face_offset`` cells out from the drawn face (row 43 + offset), the floor in front of it
-    free, the cells between the drawn face and it ``behind`` (UNKNOWN: not seen, FREE: seen).
-    Returns the local state and the added mask the raw difference makes of it (its cells more
-    than 0.15 m, three cells, from the wall)."""
-    local = np.full((120, 120), FREE, np.uint8)
+def _wall_seen(
+    face_offset: np.ndarray, *, behind: int, tolerance: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """The hall's long wall (rows 40-42) as a local map sees it: per column (as many as
+    ``face_offset`` has), its face ``face_offset`` cells out from the drawn face (row 43 +
+    offset), the floor in front of it free, the cells between the drawn face and it ``behind``
+    (UNKNOWN: not seen, FREE: seen). Returns the local state and the added mask the raw
+    difference makes of it (its cells more than ``tolerance`` cells from the wall: 0.15 m)."""
+    local = np.full((120, len(face_offset)), FREE, np.uint8)
     local[:43, :] = UNKNOWN  # the wall's inside and beyond
     local[40:43, :] = OCCUPIED
     added = np.zeros(local.shape, bool)
     for col, offset in enumerate(face_offset):
         local[43 : 43 + offset, col] = behind
         local[43 + offset, col] = OCCUPIED
-        added[43 + offset, col] = offset > 3
+        added[43 + offset, col] = offset > tolerance
     return local, added
 
 
@@ -615,16 +617,9 @@ def test_a_face_displaced_smoothly_is_dropped_at_any_resolution(res: float) -> N
     width = 2 * (per * (tolerance + 1) + margin) + 2 * margin
     i = np.arange(width)
     offset = np.clip(np.minimum(i - margin, width - 1 - margin - i) // per, 0, tolerance + 1)
-    local = np.full((120, width), FREE, np.uint8)
-    local[:43] = UNKNOWN
-    local[40:43] = OCCUPIED
+    local, added = _wall_seen(offset, behind=UNKNOWN, tolerance=tolerance)
     walls = np.zeros(local.shape, bool)
     walls[40:43] = True
-    added = np.zeros(local.shape, bool)
-    for col, cells in enumerate(offset):
-        local[43 : 43 + cells, col] = UNKNOWN
-        local[43 + cells, col] = OCCUPIED
-        added[43 + cells, col] = cells > tolerance
     assert added.sum() > 40
     kept = drop_along_walls(added, walls, resolution=res, within_m=0.35, local_state=local)
     assert not kept.any()
