@@ -318,6 +318,36 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
         assert [d.kind for d in still] == [kind]
 
 
+@pytest.mark.parametrize(
+    ("evidence_cells", "drifted", "kept"),
+    [
+        (15, False, True),  # 0.0375 m2 of evidence: over 0.025 m2
+        (9, False, False),  # 0.0225 m2
+        (15, True, False),  # after a drifting session 0.05 m2 is asked
+        (20, True, True),  # ... which 20 cells show
+    ],
+)
+def test_a_piece_gone_beside_a_band_without_evidence_is_kept_for_its_evidence_s_area(
+    evidence_cells: int, drifted: bool, kept: bool
+) -> None:
+    """A piece of a block seen gone (every cell evidence, in rows 5 cells wide) beside a band
+    of the block seen free without evidence (60 cells, 0.05 m cells) that outnumbers it: kept
+    for the area its evidence covers, 0.025 m2 (``removed_evidence_m2``) where the session did
+    not drift, 0.05 m2 after a drifting one (``drifted_removed_evidence_m2``)."""
+    grid = Grid(0.0, 0.0, 0.05, 100, 100)
+    local = from_states(np.full((100, 100), FREE, np.uint8), 0.05, (0.0, 0.0, 0.0))
+    seen = local.state  # no structure drawn: nothing small seen gone whole
+    evidence = np.zeros((100, 100), bool)
+    evidence[10:20, 10:15].flat[:evidence_cells] = True
+    removed = evidence.copy()
+    removed[10:13, 15:35] = True  # the band, 1.0 m long, 3 cells wide: no evidence
+    masks = diff_stage.DiffMasks(added=np.zeros_like(removed), removed=removed)
+    found = pipeline._cluster_masks(
+        masks, evidence, grid, Config(), local, (seen, seen), 0.05, drifted=drifted
+    )
+    assert [d.kind for d in found] == (["removed"] if kept else [])
+
+
 @pytest.mark.parametrize(("global_res_m", "kinds"), [(0.05, ["removed"]), (0.1, [])])
 def test_a_small_structure_is_counted_in_the_global_maps_cells(
     global_res_m: float, kinds: list[str]
