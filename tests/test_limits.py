@@ -149,6 +149,63 @@ def test_the_quick_check_leaves_what_it_cannot_cut_to_the_whole_parse() -> None:
             parse_manifest(manifest().replace("x: 0", "x: !!float abc", 1), trajectory=not quick)
 
 
+def _reasons(text: str) -> tuple[str, str]:
+    """The reasons the whole parse and the quick check (``trajectory=False``) refuse
+    ``text`` for."""
+    reasons = []
+    for quick in (False, True):
+        with pytest.raises(BundleError) as caught:
+            parse_manifest(text, trajectory=not quick)
+        reasons.append(caught.value.reason)
+    return reasons[0], reasons[1]
+
+
+@pytest.mark.parametrize("flow", [False, True], ids=["block", "flow"])
+@pytest.mark.parametrize("with_trajectory", [False, True])
+def test_the_quick_check_refuses_an_unknown_key_without_reading_its_value(
+    flow: bool, with_trajectory: bool
+) -> None:
+    """A key the manifest does not know, holding a large value: the quick check (the daemon's
+    main loop) names it as the whole parse does, without reading the value (16 MiB of it took
+    16 s): a value YAML cannot construct (``!!float abc``) under it makes the whole parse
+    refuse the YAML, the quick check still the key."""
+    poses = [{"x": 0, "y": 0, "yaw": 0}] if with_trajectory else None
+    junk = {"rows": [{"a": i, "b": [i, i + 1]} for i in range(200)], "note": "x" * 100}
+    doc = yaml.safe_load(manifest(junk=junk, trajectory=poses))
+    if not with_trajectory:
+        del doc["trajectory"]
+    text = yaml.safe_dump(doc, default_flow_style=flow, sort_keys=False)
+    whole, quick = _reasons(text)
+    assert quick == whole
+    assert "unknown key 'junk'" in whole
+    if flow:
+        return
+    # A scalar under a second unknown key: both named.
+    whole, quick = _reasons(text + "extra_note: some words\n")
+    assert quick == whole
+    assert "unknown key 'extra_note'" in whole
+    whole, quick = _reasons(text.replace("note:", "note: !!float abc\n  old_note:", 1))
+    assert "not valid YAML: could not convert" in whole
+    assert "unknown key 'junk'" in quick
+
+
+def test_what_the_quick_check_cannot_cut_alone_gets_the_whole_parse_s_reason() -> None:
+    """An unknown key's value that a known key refers to (a YAML alias into it): the cut text
+    does not read, and the whole parse gives the reason. Keys YAML does not read as plain
+    names (quoted, ``yes``) are not cut, and the whole parse judges them."""
+    for text in (
+        manifest().replace("robot: r1", "junk: &who r1\nrobot: *who"),
+        manifest() + "'quoted': [1, 2]\n",
+        manifest() + "yes: [1, 2]\n",
+    ):
+        whole, quick = _reasons(text)
+        assert quick == whole
+    assert (
+        "unknown key 'junk'"
+        in _reasons(manifest().replace("robot: r1", "junk: &who r1\nrobot: *who"))[0]
+    )
+
+
 def test_a_manifest_larger_than_the_limit_is_refused_unread(tmp_path: Path) -> None:
     bundle = make_bundle(tmp_path / "run-1")
     size = (bundle / "bundle.yaml").stat().st_size
