@@ -176,10 +176,10 @@ class Manifest(_Model):
         return [p.to_pose() for p in self.trajectory or []]
 
 
-# A top-level key the quick check may cut out unread when the model does not know it: a plain
-# name that YAML reads as a string (``yes``, ``null``, ``1`` and the like are left alone).
-_PLAIN_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
-_NOT_STRINGS = frozenset({"y", "n", "yes", "no", "on", "off", "true", "false", "null"})
+# How YAML reads a scalar it was given no tag for: the quick check cuts out a key's value only
+# when the key is read as a string (not ``yes``, ``1``, the merge key ``<<``).
+_RESOLVER = yaml.resolver.Resolver()
+_STR_TAG = "tag:yaml.org,2002:str"
 
 
 @dataclass(frozen=True)
@@ -195,17 +195,16 @@ class _Cut:
 
 def _cut_for_check(text: str) -> _Cut | None:
     """``text`` (a manifest) with the values of its top-level ``trajectory`` and of every
-    top-level key the model does not know (a plain name) replaced by null; None when there is
+    top-level key the model does not know (a string) replaced by null; None when there is
     nothing to cut, the trajectory is given twice or holds no sequence, or its YAML cannot be
     read (the full parse says why).
 
     Found from the parser's events, which libyaml makes ten times faster than the objects of a
     full load (100,000 poses: 0.5 s against 4.4 s on 2 cores); their marks index characters of
     ``text``."""
-    known = set(Manifest.model_fields)
     depth = 0  # collections open
     top = 0  # nodes seen directly in the top-level mapping: keys, then values
-    key: object = None
+    key: str | None = None
     cuts: list[tuple[int, int]] = []
     open_from: int | None = None  # inside a value being cut: where it starts
     counting = False  # that value is the trajectory: count its items
@@ -226,14 +225,14 @@ def _cut_for_check(text: str) -> _Cut | None:
                 return None  # not a mapping: the full parse says so
             if depth == 1:
                 if top % 2 == 0:
-                    key = _plain_key(event)
+                    key = _string_key(event)
                     keys += key == "trajectory"
                 elif key == "trajectory":
                     if not isinstance(event, yaml.SequenceStartEvent):
                         return None  # null, a number, a mapping: the full parse judges it
                     assert event.start_mark is not None
                     open_from, counting = event.start_mark.index, True
-                elif isinstance(key, str) and key not in known:
+                elif isinstance(key, str) and key not in Manifest.model_fields:
                     unknown.append(key)
                     assert event.start_mark is not None and event.end_mark is not None
                     if isinstance(event, yaml.CollectionStartEvent):
@@ -258,14 +257,15 @@ def _cut_for_check(text: str) -> _Cut | None:
     return _Cut("".join(pieces), poses, tuple(unknown))
 
 
-def _plain_key(event: yaml.Event) -> object:
-    """A top-level key's name when it is a plain scalar that YAML reads as a string, else the
-    scalar's text (or None for a collection): a key not cut unread."""
+def _string_key(event: yaml.Event) -> str | None:
+    """A top-level key's name when YAML reads it as a string (plain or quoted, or tagged so);
+    None for any other key (a number, a bool, a collection)."""
     if not isinstance(event, yaml.ScalarEvent):
         return None
-    if not event.style and _PLAIN_KEY.fullmatch(event.value):  # plain: None, or "" (libyaml)
-        return event.value if event.value.lower() not in _NOT_STRINGS else None
-    return event.value if event.value == "trajectory" else None
+    tag = event.tag
+    if tag in (None, "!"):
+        tag = _RESOLVER.resolve(yaml.ScalarNode, event.value, event.implicit)  # type: ignore[no-untyped-call]
+    return event.value if tag == _STR_TAG else None
 
 
 def parse_manifest(
@@ -282,8 +282,8 @@ def parse_manifest(
     the values of keys the model does not know are not read either (the manifest is refused
     for them, naming them, as the whole parse does): what the daemon's main loop checks of an
     upload, where a trajectory of 100,000 poses took 4-8 s to load, and 16 MiB under an unknown
-    key 12 s (1.5 s cut); the worker reads the whole manifest. A cut text YAML cannot read (an alias into
-    what was cut) gets the whole parse, and its reason."""
+    key 12 s (1.5 s cut); the worker reads the whole manifest. A cut text YAML cannot read (an
+    alias into what was cut) gets the whole parse, and its reason."""
     if not trajectory:
         cut = _cut_for_check(text)
         if cut is not None:

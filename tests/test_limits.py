@@ -191,8 +191,9 @@ def test_the_quick_check_refuses_an_unknown_key_without_reading_its_value(
 
 def test_what_the_quick_check_cannot_cut_alone_gets_the_whole_parse_s_reason() -> None:
     """An unknown key's value that a known key refers to (a YAML alias into it): the cut text
-    does not read, and the whole parse gives the reason. Keys YAML does not read as plain
-    names (quoted, ``yes``) are not cut, and the whole parse judges them."""
+    does not read, and the whole parse gives the reason. A quoted key is a string as a plain
+    one is (cut, named the same); a key YAML reads as no string (``yes``: a bool) is not cut,
+    and the whole parse judges it."""
     for text in (
         manifest().replace("robot: r1", "junk: &who r1\nrobot: *who"),
         manifest() + "'quoted': [1, 2]\n",
