@@ -133,10 +133,10 @@ class DiffConfig(_Frozen):
     """The share of a removed obstacle's cells that must show one of those two ..."""
     removed_evidence_m2: float = Field(0.025, gt=0)
     """... or the area they cover (m2; at least the removed obstacles' floor too) however many
-    do not: a piece of a block really gone (10 cells at 0.05 m),
-    joined by the free band of a fold or a face eroded by grazing rays that outnumbers it.
-    Reported as its evidence and what lies within ``cluster_eps_m`` of it. ``.inf`` turns this
-    off. After a drifting session, ``drifted_removed_evidence_m2``.
+    do not: a piece of a block really gone (10 cells at 0.05 m), joined by the free band of a
+    fold or a face eroded by grazing rays that outnumbers it. Reported as its evidence and what
+    lies within ``cluster_eps_m`` of it. ``.inf`` turns this off. After a drifting session,
+    ``drifted_removed_evidence_m2``.
     Session 23, over 56 generated and public sets and every session, without the floor: 0.05
     found 11 more changes for 4 more false positives (with it, 10 for 4: a removal of a 0.1 m
     local map whose evidence was 5-7 of its cells); 0.1 found 4 for 1; 0.04 14 for 12, 0.025 20

@@ -573,13 +573,14 @@ def _cluster_masks(
     """The obstacles of the difference masks, largest first. ``drifted``: the session drifted
     (:func:`_drifted`), so the floor on an added one's area is ``drifted_min_area_m2`` (a
     removed one has its evidence to show, and the re-fit's checks after), and a removed one
-    kept for the area of its evidence shows ``drifted_removed_evidence_m2`` of it. ``states``: the
-    global and the aligned local map's cell states the masks were made from (on ``grid``), and
-    ``global_res_m`` the global map's own resolution: what a small structure seen gone whole
-    is measured on (``small_structure_m``)."""
+    kept for the area of its evidence shows ``drifted_removed_evidence_m2`` of it. ``states``:
+    the global and the aligned local map's cell states the masks were made from (on
+    ``grid``), and ``global_res_m`` the global map's own resolution: what a small structure
+    seen gone whole is measured on (``small_structure_m``)."""
     d = config.pipeline.diff
     cell_m2 = local.resolution**2
     added_floor_m2 = max(d.min_area_m2, d.drifted_min_area_m2) if drifted else d.min_area_m2
+    evidence_m2 = d.drifted_removed_evidence_m2 if drifted else d.removed_evidence_m2
     removed_floor = max(d.min_local_cells, d.min_removed_cells)
     # The floor in cells of the work grid, on which the rescue rules below count a piece's
     # cells: the grid has the finer of the two maps' cells, four to a local cell on a 0.1 m
@@ -638,7 +639,7 @@ def _cluster_masks(
             min_area_m2=min_area,
             evidence=evidence,
             min_evidence=d.removed_evidence_share,
-            min_evidence_m2=(d.drifted_removed_evidence_m2 if drifted else d.removed_evidence_m2),
+            min_evidence_m2=evidence_m2,
             whole=whole_of,
             min_whole_area_m2=max(floor_m2, d.min_local_cells * cell_m2),
             engine=d.cluster_engine,
