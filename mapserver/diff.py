@@ -41,6 +41,9 @@ class DiffMasks:
 
     added: BoolArray
     removed: BoolArray
+    beside_walls: BoolArray | None = None
+    """The cells of ``removed`` on small structures seen gone beside a wall, which the removed
+    tolerance hid (:func:`small_structures_beside_walls`): each reported whole."""
 
 
 def distance_to(mask: BoolArray) -> NDArray[np.float32]:
@@ -1488,3 +1491,109 @@ __all__ = [
     "removal_evidence",
     "thin_walls_seen_free",
 ]
+
+
+@dataclass(frozen=True)
+class BesideRules:
+    """What :func:`small_structures_beside_walls` asks of a structure, in metres: no wider than
+    ``max_extent_m`` either way, ``min_share`` of its cells seen free, every local wall within
+    ``reach_m`` of it nearer other structure by more than ``margin_m``, no unknown ``unseen_m``
+    deep within twice that."""
+
+    max_extent_m: float = 0.5
+    min_share: float = 0.5
+    reach_m: float = 0.35
+    margin_m: float = 0.05
+    unseen_m: float = 0.25
+
+
+def small_structures_beside_walls(
+    global_state: NDArray[np.uint8],
+    local_state: NDArray[np.uint8],
+    roi: BoolArray,
+    *,
+    resolution: float,
+    min_px: float,
+    rules: BesideRules,
+    global_walls: BoolArray | None = None,
+) -> BoolArray:
+    """The cells of small structures of the global map seen gone beside a wall: a post or a
+    box up to 0.25 m from a wall, which the removed tolerance (no removed cell within 0.25 m of
+    a local wall) hides from the comparison, the wall beside it drawn where it stands.
+
+    A structure is a component of the global map's occupied cells (8-connected) with a cell in
+    ``roi``, of at least ``min_px`` cells of this grid and no wider than ``rules.max_extent_m``
+    either way; none of its cells a wall of the local map and at least ``rules.min_share`` of
+    those in ``roi`` seen free; every local wall within ``rules.reach_m`` of it nearer to other
+    structure of the global map than to it by more than ``rules.margin_m``: the walls the robot
+    drew there are its neighbours', not this thing drawn off. Other structure: the global map's
+    other occupied cells, ``global_walls`` (its walls drawn grey, as :func:`raw_differences`
+    takes them) and its specks of unknown no wider than a structure (a scanned map's noise,
+    where the robot may see something standing), not the edge of a larger unknown area. And no
+    cell of the global map's unknown area ``rules.unseen_m`` deep within twice that of it (a
+    dash of a face whose inside the map never saw is no thing of its own, as for
+    :func:`small_structures_gone`). (H, W) bool, True on the structures' cells the local map
+    saw free in ``roi``; the inputs are not modified.
+    """
+    out = np.zeros(roi.shape, bool)
+    reach_px = rules.reach_m / resolution
+    around_px = max(1, round(2 * rules.unseen_m / resolution))
+    depth_px = rules.unseen_m / resolution
+    room = math.ceil(max(reach_px, around_px + depth_px)) + 2
+    box = box_around(roi, math.ceil(rules.max_extent_m / resolution) + room)
+    if box is None:
+        return out
+    g_state, l_state, in_roi = global_state[box], local_state[box], roi[box]
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (g_state == OCCUPIED).view(np.uint8), connectivity=8
+    )
+    size = stats[:, cv2.CC_STAT_AREA]
+    max_px = rules.max_extent_m / resolution
+    seen_free = in_roi & (l_state == FREE)
+    keep = (
+        (stats[:, cv2.CC_STAT_WIDTH] <= max_px)
+        & (stats[:, cv2.CC_STAT_HEIGHT] <= max_px)
+        & (size >= min_px)
+        & (
+            np.bincount(labels[seen_free], minlength=n)
+            >= rules.min_share * np.bincount(labels[in_roi], minlength=n)
+        )
+        & (np.bincount(labels[seen_free], minlength=n) > 0)
+        & (np.bincount(labels[l_state == OCCUPIED], minlength=n) == 0)
+    )
+    keep[0] = False  # the background
+    # A structure through the box's edge may be wider than it shows.
+    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    keep &= (left > 0) & (left + stats[:, cv2.CC_STAT_WIDTH] < labels.shape[1])
+    keep &= (top > 0) & (top + stats[:, cv2.CC_STAT_HEIGHT] < labels.shape[0])
+    others = (labels > 0) | _unknown_specks(g_state, max_px)
+    if global_walls is not None:
+        others |= global_walls[box]
+    around = np.ones((2 * around_px + 1,) * 2, np.uint8)
+    found = np.zeros(labels.shape, bool)
+    for label in np.flatnonzero(keep):
+        x, y, w, h = (int(v) for v in stats[label, :4])
+        win = grown((slice(y, y + h), slice(x, x + w)), room, labels.shape)
+        own = labels[win] == label
+        deep = _deep_unknown(g_state[win], depth_px)
+        if (deep & cv2.dilate(own.view(np.uint8), around).view(bool)).any():
+            continue
+        to_own = cv2.distanceTransform((~own).view(np.uint8), cv2.DIST_L2, 5)
+        to_others = distance_to(others[win] & ~own)
+        walls = (l_state[win] == OCCUPIED) & (to_own <= reach_px)
+        if (walls & (to_own <= to_others + rules.margin_m / resolution)).any():
+            continue
+        found[win] |= own & seen_free[win]
+    out[box] = found
+    return out
+
+
+def _unknown_specks(g_state: NDArray[np.uint8], max_px: float) -> BoolArray:
+    """The global map's unknown cells in components (8-connected) no wider than ``max_px``
+    either way."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (g_state == UNKNOWN).view(np.uint8), connectivity=8
+    )
+    small = (stats[:, cv2.CC_STAT_WIDTH] <= max_px) & (stats[:, cv2.CC_STAT_HEIGHT] <= max_px)
+    small[0] = False  # the background
+    return np.asarray(small[labels])

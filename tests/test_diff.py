@@ -22,6 +22,7 @@ from mapserver.cluster import (
 from mapserver.config import DiffConfig
 from mapserver.deform import warp_local
 from mapserver.diff import (
+    BesideRules,
     CutRules,
     DiffMasks,
     LineRules,
@@ -34,6 +35,7 @@ from mapserver.diff import (
     misfit_tolerance,
     raw_differences,
     removal_evidence,
+    small_structures_beside_walls,
     small_structures_gone,
     thin_walls_seen_free,
     walls_cut_through,
@@ -1206,6 +1208,115 @@ def test_a_dash_on_the_face_of_an_unseen_inside_is_no_structure_of_its_own(
     g[30 : 30 + inside_px, 30:60] = UNKNOWN
     g[30 + inside_px, 40:45] = OCCUPIED
     assert _gone(g, loc).sum() == marked
+
+
+def _beside(g: np.ndarray, loc: np.ndarray, roi: np.ndarray | None = None) -> np.ndarray:
+    return small_structures_beside_walls(
+        g,
+        loc,
+        np.ones(g.shape, bool) if roi is None else roi,
+        resolution=RES,
+        min_px=3,
+        rules=BesideRules(),
+    )
+
+
+def _column_by_a_wall() -> tuple[np.ndarray, np.ndarray]:
+    """A room 5 m x 5 m at 0.05 m, a wall along row 50 (2 cells thick) and a column 0.15 m x
+    0.1 m (rows 54-55, columns 40-42: 6 cells) 0.1 m from it; the local map draws the wall
+    where it stands and the column's place free."""
+    g, loc = _small_world()
+    g[49:51, :] = OCCUPIED
+    loc[49:51, :] = OCCUPIED
+    g[53:55, 40:43] = OCCUPIED
+    return g, loc
+
+
+def test_a_column_gone_beside_a_wall_is_marked_and_its_lookalikes_are_not() -> None:
+    """The column's six cells: the only local wall within its reach (0.35 m) is the wall, which
+    lies nearer the global wall than the column. Not: the column drawn 0.1 m off (its own
+    drawing, nearer to it), the wall drawn half-way to it (as near to it as to the wall), a
+    cell of it drawn as a wall, two of its six cells seen free, outside the region compared,
+    a deep unseen part beside it, and a piece too long to be a thing of its own."""
+    g, loc = _column_by_a_wall()
+    g0, loc0 = g.copy(), loc.copy()
+    gone = _beside(g, loc)
+    assert gone.sum() == 6 and gone[53:55, 40:43].all()
+    assert (g == g0).all() and (loc == loc0).all()
+    # The raw comparison does not see it: the wall lies within the removed tolerance.
+    everywhere = np.ones(g.shape, bool)
+    raw = raw_differences(
+        g, loc, everywhere, resolution=RES, tolerance_m=0.15, removed_tolerance_m=0.25
+    )
+    assert not raw.removed.any()
+
+    g, loc = _column_by_a_wall()
+    loc[55:57, 40:43] = OCCUPIED  # drawn 0.1 m off, away from the wall
+    assert not _beside(g, loc).any()
+    g, loc = _column_by_a_wall()
+    loc[51, 40:43] = (
+        OCCUPIED  # the wall drawn a cell nearer: 2 cells from the column, 1 from the wall
+    )
+    assert not _beside(g, loc).any()
+    g, loc = _column_by_a_wall()
+    loc[53, 40] = OCCUPIED
+    assert not _beside(g, loc).any()
+    g, loc = _column_by_a_wall()
+    loc[53:55, 40:43] = UNKNOWN
+    loc[53, 40:42] = FREE  # 2 of 6 seen free
+    assert not _beside(g, loc).any()
+    roi = np.ones(g.shape, bool)
+    roi[53:55, 40:43] = False
+    g, loc = _column_by_a_wall()
+    assert not _beside(g, loc, roi).any()
+    g, loc = _column_by_a_wall()
+    g[56:70, 30:60] = UNKNOWN  # 0.25 m deep within 0.5 m of it
+    assert not _beside(g, loc).any()
+    g, loc = _column_by_a_wall()
+    g[53:55, 40:55] = OCCUPIED  # 0.75 m long: over 0.5 m
+    assert not _beside(g, loc).any()
+
+
+def test_a_column_gone_in_the_open_is_marked_unless_a_wall_was_drawn_near_it() -> None:
+    """With no other structure around, any local wall within 0.35 m of it is its own drawing:
+    0.3 m away blocks it, 0.45 m does not."""
+    g, loc = _small_world()
+    g[40:43, 40:43] = OCCUPIED
+    assert _beside(g, loc).sum() == 9
+    loc[40:43, 48] = OCCUPIED  # 6 cells beyond its edge: 0.3 m
+    assert not _beside(g, loc).any()
+    loc[40:43, 48] = FREE
+    loc[40:43, 51] = OCCUPIED  # 9 cells beyond: 0.45 m
+    assert _beside(g, loc).sum() == 9
+
+
+def test_a_speck_of_unknown_or_a_grey_wall_beside_a_column_is_structure_a_band_of_unknown_not() -> (
+    None
+):
+    """A scanned map's speck of unknown 0.2 m from a column gone (something the robot saw
+    standing there): the local wall on it is the speck's, the column is marked. The edge of a
+    band of unknown 2.5 m long at the same place is not a structure of its own: the local wall
+    there may be the column drawn off, and nothing is marked; unless the band is a wall the
+    map draws grey (``global_walls``)."""
+    g, loc = _small_world()
+    g[40:43, 40:43] = OCCUPIED
+    g[40:42, 46:48] = UNKNOWN
+    loc[40:42, 46:48] = OCCUPIED
+    assert _beside(g, loc).sum() == 9
+    g[20:70, 46:50] = UNKNOWN  # 4 cells wide: nowhere 0.25 m from a known cell
+    assert not _beside(g, loc).any()
+    # Unless the band is a wall drawn grey: the local wall is that wall's.
+    grey = g == UNKNOWN
+    marked = small_structures_beside_walls(
+        g,
+        loc,
+        np.ones(g.shape, bool),
+        resolution=RES,
+        min_px=3,
+        rules=BesideRules(),
+        global_walls=grey,
+    )
+    assert marked.sum() == 9
 
 
 def test_a_small_cluster_is_kept_when_most_of_it_is_a_structure_seen_gone_whole() -> None:

@@ -129,6 +129,24 @@ def test_an_object_drawn_as_five_cells_seen_gone_is_found(tmp_path: Path, world)
     assert process_bundle(path, off).result["differences"] == []
 
 
+def test_a_post_gone_beside_a_wall_is_found(tmp_path: Path, world) -> None:
+    """A post 0.15 m x 0.15 m standing a cell (0.05 m) from the corridor wall in the global
+    map, gone in the robot's map, which draws the wall where it stands: within the removed
+    tolerance (0.25 m) of that wall, the comparison alone never saw it (until session 48);
+    the local walls near it are the wall's, so it is reported. With ``small_structure_m: 0``,
+    not."""
+    before = changed(world, [("add", 11.5, 7.2, 11.65, 7.3)])
+    straight = Transform2D(0.0, 3.0, 8.0)  # slam cells on the global map's lattice
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=straight)
+    path = write_bundle(tmp_path / "post", before, cut)
+    found = process_bundle(path, Config()).result["differences"]
+    assert [d["kind"] for d in found] == ["removed"]
+    assert found[0]["centroid"]["x"] == pytest.approx(11.575, abs=0.05)
+    assert found[0]["centroid"]["y"] == pytest.approx(7.225, abs=0.05)
+    off = Config(pipeline=PipelineConfig(diff=DiffConfig(small_structure_m=0.0)))
+    assert process_bundle(path, off).result["differences"] == []
+
+
 def test_a_misaligned_bundle_reports_no_differences(tmp_path: Path, world) -> None:
     now = changed(world, [("add", *ADDED_BOX)])
     cut = cut_local(now, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
