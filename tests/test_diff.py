@@ -1290,6 +1290,18 @@ def test_a_column_gone_in_the_open_is_marked_unless_a_wall_was_drawn_near_it() -
     assert _beside(g, loc).sum() == 9
 
 
+@pytest.mark.parametrize("corner", [(20, 20), (62, 62), (150, 190)])
+def test_a_column_gone_is_marked_wherever_it_lies_on_the_grid(corner: tuple[int, int]) -> None:
+    """The work is done in windows around tiles of 64 cells with cells seen free: a column
+    inside a tile, across the corner of four tiles, and in the last, partial tiles near the
+    grid's far corner (a column of 4 x 4 cells; the grid 160 x 200 cells)."""
+    g = np.full((160, 200), FREE, np.uint8)
+    loc = g.copy()
+    r, c = corner
+    g[r : r + 4, c : c + 4] = OCCUPIED
+    assert _beside(g, loc).sum() == 16
+
+
 def test_a_speck_of_unknown_or_a_grey_wall_beside_a_column_is_structure_a_band_of_unknown_not() -> (
     None
 ):
