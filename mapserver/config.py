@@ -157,9 +157,10 @@ class DiffConfig(_Frozen):
     cells at least, half of them among the removed cells, no local wall within 0.1 m, no part
     of the global map unknown 0.25 m deep within 0.5 m of it (an object the global map draws
     as a few cells, not a dash of a face whose inside the map never saw). Where the session
-    did not drift, such a structure (up to 0.5 m) is also looked for beside a wall, which the
-    removed tolerance hides, when every local wall near it lies nearer other structure of the
-    global map (``diff.small_structures_beside_walls``). 0 turns both off."""
+    did not drift, such a structure (up to 0.5 m, or this if less) is also reported seen gone
+    beside a wall, which the removed tolerance hides, or in the open, when every local wall
+    within 0.35 m of it lies nearer other structure of the global map
+    (``diff.small_structures_beside_walls``). 0 turns both off."""
     cluster_eps_m: float = Field(0.3, gt=0)
     """DBSCAN neighbourhood radius: difference pixels closer than this form one obstacle."""
     cluster_min_samples: int = Field(3, ge=1)

@@ -1477,20 +1477,8 @@ def filter_noise(masks: DiffMasks, *, min_pixels: int) -> DiffMasks:
     )
 
 
-__all__ = [
-    "DiffMasks",
-    "LineRules",
-    "distance_to",
-    "drop_along_walls",
-    "drop_small",
-    "filter_noise",
-    "misfit_tolerance",
-    "near",
-    "offset_distances",
-    "raw_differences",
-    "removal_evidence",
-    "thin_walls_seen_free",
-]
+# The side of the tiles small_structures_beside_walls works in windows around, in cells.
+_BESIDE_TILE_PX = 64
 
 
 @dataclass(frozen=True)
@@ -1498,7 +1486,7 @@ class BesideRules:
     """What :func:`small_structures_beside_walls` asks of a structure, in metres: no wider than
     ``max_extent_m`` either way, ``min_share`` of its cells seen free, every local wall within
     ``reach_m`` of it nearer other structure by more than ``margin_m``, no unknown ``unseen_m``
-    deep within twice that."""
+    deep in the square of half-width twice that around it."""
 
     max_extent_m: float = 0.5
     min_share: float = 0.5
@@ -1517,9 +1505,11 @@ def small_structures_beside_walls(
     rules: BesideRules,
     global_walls: BoolArray | None = None,
 ) -> BoolArray:
-    """The cells of small structures of the global map seen gone beside a wall: a post or a
-    box up to 0.25 m from a wall, which the removed tolerance (no removed cell within 0.25 m of
-    a local wall) hides from the comparison, the wall beside it drawn where it stands.
+    """The cells of small structures of the global map seen gone, judged by whom the local
+    walls near them belong to: made for a post or a box a few centimetres from a wall, which
+    the removed tolerance (no removed cell within 0.25 m of a local wall) hides from the
+    comparison, the wall beside it drawn where it stands. No wall need stand near: a post in
+    the open seen gone is marked too (as :func:`small_structures_gone` marks it).
 
     A structure is a component of the global map's occupied cells (8-connected) with a cell in
     ``roi``, of at least ``min_px`` cells of this grid and no wider than ``rules.max_extent_m``
@@ -1530,10 +1520,11 @@ def small_structures_beside_walls(
     other occupied cells, ``global_walls`` (its walls drawn grey, as :func:`raw_differences`
     takes them) and its specks of unknown no wider than a structure (a scanned map's noise,
     where the robot may see something standing), not the edge of a larger unknown area. And no
-    cell of the global map's unknown area ``rules.unseen_m`` deep within twice that of it (a
-    dash of a face whose inside the map never saw is no thing of its own, as for
-    :func:`small_structures_gone`). (H, W) bool, True on the structures' cells the local map
-    saw free in ``roi``; the inputs are not modified.
+    cell of the global map's unknown area ``rules.unseen_m`` deep in the square of half-width
+    twice that around it (a dash of a face whose inside the map never saw is no thing of its
+    own, as for :func:`small_structures_gone`). A structure touching the grid's edge is not
+    looked at (it may be wider than the grid shows). (H, W) bool, True on the structures' cells
+    the local map saw free in ``roi``; the inputs are not modified.
     """
     out = np.zeros(roi.shape, bool)
     seen_free = (global_state == OCCUPIED) & roi & (local_state == FREE)
@@ -1558,25 +1549,32 @@ def small_structures_beside_walls(
     # 64 cells on bench_speed's airport): each group of tiles with some is worked on in a
     # window of its own, grown by what a structure there may reach.
     tile = _BESIDE_TILE_PX
-    tiles = np.zeros((height // tile + 1, width // tile + 1), np.uint8)
+    tiles = np.zeros((-(-height // tile), -(-width // tile)), np.uint8)
     tiles[rows // tile, cols // tile] = 1
     _, _, stats, _ = cv2.connectedComponentsWithStats(tiles, connectivity=8)
     grow = math.ceil(rules_px.max_px) + rules_px.room_px
     for x, y, w, h, _ in stats[1:]:
         place = (slice(y * tile, (y + h) * tile), slice(x * tile, (x + w) * tile))
         win = grown(place, grow, out.shape)
+        # Candidates through this group's own cells seen free only: one through a cell in the
+        # margin (another group's) may lie too near this window's edge to be judged here.
+        (r0, r1), (c0, c1) = (
+            (p.start - w.start, min(p.stop, w.stop) - w.start)
+            for p, w in zip(place, win, strict=True)
+        )
+        free = seen_free[win]
+        candidates = np.zeros(free.shape, bool)
+        candidates[r0:r1, c0:c1] = free[r0:r1, c0:c1]
         out[win] |= _beside_in(
             global_state[win],
             local_state[win],
             roi[win],
-            seen_free[win],
+            free,
+            candidates,
             None if global_walls is None else global_walls[win],
             rules_px,
         )
     return out
-
-
-_BESIDE_TILE_PX = 64
 
 
 @dataclass(frozen=True)
@@ -1598,11 +1596,13 @@ def _beside_in(
     l_state: NDArray[np.uint8],
     roi: BoolArray,
     free: BoolArray,
+    candidates: BoolArray,
     global_walls: BoolArray | None,
     rules: _BesidePx,
 ) -> BoolArray:
     """:func:`small_structures_beside_walls` in one window (the arrays' shape; ``free``: the
-    global map's occupied cells seen free in ``roi``)."""
+    global map's occupied cells seen free in ``roi``; only structures through a cell of
+    ``candidates``, cells of ``free``, are looked at)."""
     found = np.zeros(free.shape, bool)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(
         (g_state == OCCUPIED).view(np.uint8), connectivity=8
@@ -1613,7 +1613,7 @@ def _beside_in(
         (width <= rules.max_px)
         & (height <= rules.max_px)
         & (stats[:, cv2.CC_STAT_AREA] >= rules.min_px)
-        & (np.bincount(labels[free], minlength=n) > 0)
+        & (np.bincount(labels[candidates], minlength=n) > 0)
         # A structure through the window's edge may be wider than it shows.
         & (left > 0)
         & (top > 0)
@@ -1656,3 +1656,24 @@ def _unknown_specks(g_state: NDArray[np.uint8], max_px: float) -> BoolArray:
     small &= (left + width < labels.shape[1]) & (top + height < labels.shape[0])
     small[0] = False  # the background
     return np.asarray(small[labels])
+
+
+__all__ = [
+    "BesideRules",
+    "CutRules",
+    "DiffMasks",
+    "LineRules",
+    "distance_to",
+    "drop_along_walls",
+    "drop_small",
+    "filter_noise",
+    "misfit_tolerance",
+    "near",
+    "offset_distances",
+    "raw_differences",
+    "removal_evidence",
+    "small_structures_beside_walls",
+    "small_structures_gone",
+    "thin_walls_seen_free",
+    "walls_cut_through",
+]

@@ -1222,9 +1222,9 @@ def _beside(g: np.ndarray, loc: np.ndarray, roi: np.ndarray | None = None) -> np
 
 
 def _column_by_a_wall() -> tuple[np.ndarray, np.ndarray]:
-    """A room 5 m x 5 m at 0.05 m, a wall along row 50 (2 cells thick) and a column 0.15 m x
-    0.1 m (rows 54-55, columns 40-42: 6 cells) 0.1 m from it; the local map draws the wall
-    where it stands and the column's place free."""
+    """A room 5 m x 5 m at 0.05 m, a wall along rows 49-50 and a column 0.15 m x 0.1 m (rows
+    53-54, columns 40-42: 6 cells) 0.1 m from it; the local map draws the wall where it stands
+    and the column's place free."""
     g, loc = _small_world()
     g[49:51, :] = OCCUPIED
     loc[49:51, :] = OCCUPIED
@@ -1235,8 +1235,9 @@ def _column_by_a_wall() -> tuple[np.ndarray, np.ndarray]:
 def test_a_column_gone_beside_a_wall_is_marked_and_its_lookalikes_are_not() -> None:
     """The column's six cells: the only local wall within its reach (0.35 m) is the wall, which
     lies nearer the global wall than the column. Not: the column drawn 0.1 m off (its own
-    drawing, nearer to it), the wall drawn half-way to it (as near to it as to the wall), a
-    cell of it drawn as a wall, two of its six cells seen free, outside the region compared,
+    drawing, nearer to it), the wall drawn a cell nearer it (a cell nearer the wall than it:
+    not more than the 0.05 m margin), a cell of it drawn as a wall, two of its six cells seen
+    free, outside the region compared,
     a deep unseen part beside it, and a piece too long to be a thing of its own."""
     g, loc = _column_by_a_wall()
     g0, loc0 = g.copy(), loc.copy()
@@ -1254,12 +1255,10 @@ def test_a_column_gone_beside_a_wall_is_marked_and_its_lookalikes_are_not() -> N
     loc[55:57, 40:43] = OCCUPIED  # drawn 0.1 m off, away from the wall
     assert not _beside(g, loc).any()
     g, loc = _column_by_a_wall()
-    loc[51, 40:43] = (
-        OCCUPIED  # the wall drawn a cell nearer: 2 cells from the column, 1 from the wall
-    )
+    loc[51, 40:43] = OCCUPIED  # 2 cells from the column, 1 from the wall: the margin's edge
     assert not _beside(g, loc).any()
     g, loc = _column_by_a_wall()
-    loc[53, 40] = OCCUPIED
+    loc[53, 40] = OCCUPIED  # (a local wall on it is its own at any distance, too)
     assert not _beside(g, loc).any()
     g, loc = _column_by_a_wall()
     loc[53:55, 40:43] = UNKNOWN
@@ -1300,6 +1299,21 @@ def test_a_column_gone_is_marked_wherever_it_lies_on_the_grid(corner: tuple[int,
     r, c = corner
     g[r : r + 4, c : c + 4] = OCCUPIED
     assert _beside(g, loc).sum() == 16
+
+
+def test_a_column_is_judged_only_in_the_window_of_its_own_tiles() -> None:
+    """A column with a local wall 0.3 m from it (its own drawing: not marked), and columns seen
+    gone in two other tiles whose group's window ends two cells short of that wall: that window
+    sees the first column without the wall, and must not judge it (found in review: it did)."""
+    g = np.full((320, 320), FREE, np.uint8)
+    loc = g.copy()
+    g[210:214, 50:54] = OCCUPIED
+    loc[219:221, 44:60] = OCCUPIED
+    assert not _beside(g, loc).any()
+    g[100:104, 100:104] = OCCUPIED
+    g[150:154, 150:154] = OCCUPIED
+    gone = _beside(g, loc)
+    assert gone.sum() == 32 and not gone[210:214, 50:54].any()
 
 
 def test_a_speck_of_unknown_or_a_grey_wall_beside_a_column_is_structure_a_band_of_unknown_not() -> (

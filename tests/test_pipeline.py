@@ -134,7 +134,7 @@ def test_a_post_gone_beside_a_wall_is_found(tmp_path: Path, world) -> None:
     map, gone in the robot's map, which draws the wall where it stands: within the removed
     tolerance (0.25 m) of that wall, the comparison alone never saw it (until session 48);
     the local walls near it are the wall's, so it is reported. With ``small_structure_m: 0``,
-    not."""
+    not, nor with 0.1 (the post is wider)."""
     before = changed(world, [("add", 11.5, 7.2, 11.65, 7.3)])
     straight = Transform2D(0.0, 3.0, 8.0)  # slam cells on the global map's lattice
     cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=straight)
@@ -145,6 +145,8 @@ def test_a_post_gone_beside_a_wall_is_found(tmp_path: Path, world) -> None:
     assert found[0]["centroid"]["y"] == pytest.approx(7.225, abs=0.05)
     off = Config(pipeline=PipelineConfig(diff=DiffConfig(small_structure_m=0.0)))
     assert process_bundle(path, off).result["differences"] == []
+    narrow = Config(pipeline=PipelineConfig(diff=DiffConfig(small_structure_m=0.1)))
+    assert process_bundle(path, narrow).result["differences"] == []  # 0.15 m: wider
 
 
 def test_a_misaligned_bundle_reports_no_differences(tmp_path: Path, world) -> None:
