@@ -1559,8 +1559,8 @@ def small_structures_beside_walls(
         # Candidates through this group's own cells seen free only: one through a cell in the
         # margin (another group's) may lie too near this window's edge to be judged here.
         (r0, r1), (c0, c1) = (
-            (p.start - w.start, min(p.stop, w.stop) - w.start)
-            for p, w in zip(place, win, strict=True)
+            (inner.start - outer.start, min(inner.stop, outer.stop) - outer.start)
+            for inner, outer in zip(place, win, strict=True)
         )
         free = seen_free[win]
         candidates = np.zeros(free.shape, bool)
