@@ -940,7 +940,6 @@ def _small_gone_in(
     )
     keep[0] = False  # the background
     clear = np.ones((2 * rules.clear_px + 1,) * 2, np.uint8)
-    around = np.ones((2 * rules.reach_px + 1,) * 2, np.uint8)
     for label in np.flatnonzero(keep):
         x, y, w, h = (int(v) for v in stats[label, :4])
         room = max(rules.clear_px, rules.reach_px) + rules.pad_px
@@ -949,9 +948,16 @@ def _small_gone_in(
         if (cv2.dilate(own, clear).view(bool) & (l_state[win] == OCCUPIED)).any():
             keep[label] = False
         elif rules.depth_px is not None:
-            deep = _deep_unknown(g_state[win], rules.depth_px)
-            keep[label] = not (deep & cv2.dilate(own, around).view(bool)).any()
+            keep[label] = not _near_deep_unknown(g_state[win], own, rules.depth_px, rules.reach_px)
     return np.asarray(cand & keep[labels])
+
+
+def _near_deep_unknown(
+    g_state: NDArray[np.uint8], mask: NDArray[np.uint8], depth_px: float, reach_px: int
+) -> bool:
+    """Whether a cell of the global map's unknown area ``depth_px`` deep (:func:`_deep_unknown`)
+    lies in the square of half-width ``reach_px`` around a cell of ``mask`` (0/1 uint8)."""
+    return bool((_deep_unknown(g_state, depth_px) & _grown_by(mask, reach_px)).any())
 
 
 def _deep_unknown(g_state: NDArray[np.uint8], depth_px: float) -> BoolArray:
@@ -1021,7 +1027,7 @@ def _cuts_in(
     piece = np.zeros(g_state.shape, np.uint8)
     piece[at] = 1
     reach_px = max(1, round(2 * rules.unseen_m / resolution))
-    if (_deep_unknown(g_state, rules.unseen_m / resolution) & _grown_by(piece, reach_px)).any():
+    if _near_deep_unknown(g_state, piece, rules.unseen_m / resolution, reach_px):
         return False  # a face of a structure whose inside the map never saw
     ends = _parts_standing(g_state, l_state, piece, resolution, rules)
     if ends is None:
@@ -1527,12 +1533,16 @@ def small_structures_beside_walls(
     the local map saw free in ``roi``; the inputs are not modified.
     """
     out = np.zeros(roi.shape, bool)
-    seen_free = (global_state == OCCUPIED) & roi & (local_state == FREE)
-    at = np.flatnonzero(seen_free)  # (np.nonzero on 2-D arrays takes ten times as long)
+    box = box_around(roi, 0)
+    if box is None:
+        return out
+    at = np.flatnonzero(_seen_free(global_state[box], local_state[box], roi[box]))
     if at.size == 0:
         return out
+    # (np.flatnonzero: np.nonzero on a 2-D array takes ten times as long)
+    rows, cols = np.divmod(at, box[1].stop - box[1].start)
+    rows, cols = rows + box[0].start, cols + box[1].start
     height, width = (int(v) for v in roi.shape)
-    rows, cols = np.divmod(at, width)
     reach_px = rules.reach_m / resolution
     around_px = max(1, round(2 * rules.unseen_m / resolution))
     rules_px = _BesidePx(
@@ -1562,19 +1572,25 @@ def small_structures_beside_walls(
             (inner.start - outer.start, min(inner.stop, outer.stop) - outer.start)
             for inner, outer in zip(place, win, strict=True)
         )
-        free = seen_free[win]
+        g_win, l_win, roi_win = global_state[win], local_state[win], roi[win]
+        free = _seen_free(g_win, l_win, roi_win)
         candidates = np.zeros(free.shape, bool)
         candidates[r0:r1, c0:c1] = free[r0:r1, c0:c1]
         out[win] |= _beside_in(
-            global_state[win],
-            local_state[win],
-            roi[win],
+            g_win,
+            l_win,
+            roi_win,
             free,
             candidates,
             None if global_walls is None else global_walls[win],
             rules_px,
         )
     return out
+
+
+def _seen_free(g_state: NDArray[np.uint8], l_state: NDArray[np.uint8], roi: BoolArray) -> BoolArray:
+    """The global map's occupied cells the local map saw free, in ``roi``."""
+    return np.asarray((g_state == OCCUPIED) & roi & (l_state == FREE))
 
 
 @dataclass(frozen=True)
@@ -1604,24 +1620,12 @@ def _beside_in(
     global map's occupied cells seen free in ``roi``; only structures through a cell of
     ``candidates``, cells of ``free``, are looked at)."""
     found = np.zeros(free.shape, bool)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        (g_state == OCCUPIED).view(np.uint8), connectivity=8
-    )
-    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    width, height = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    labels, stats, small = _small_components(g_state == OCCUPIED, rules.max_px)
     keep = (
-        (width <= rules.max_px)
-        & (height <= rules.max_px)
+        small
         & (stats[:, cv2.CC_STAT_AREA] >= rules.min_px)
-        & (np.bincount(labels[candidates], minlength=n) > 0)
-        # A structure through the window's edge may be wider than it shows.
-        & (left > 0)
-        & (top > 0)
-        & (left + width < labels.shape[1])
-        & (top + height < labels.shape[0])
+        & (np.bincount(labels[candidates], minlength=len(small)) > 0)
     )
-    keep[0] = False  # the background
-    around = np.ones((2 * rules.around_px + 1,) * 2, np.uint8)
     for label in np.flatnonzero(keep):
         x, y, w, h = (int(v) for v in stats[label, :4])
         win = grown((slice(y, y + h), slice(x, x + w)), rules.room_px, labels.shape)
@@ -1630,8 +1634,7 @@ def _beside_in(
         if (l_state[win][own] == OCCUPIED).any() or shown.sum() < rules.min_share * compared.sum():
             continue
         g_win = g_state[win]
-        deep = _deep_unknown(g_win, rules.depth_px)
-        if (deep & cv2.dilate(own.view(np.uint8), around).view(bool)).any():
+        if _near_deep_unknown(g_win, own.view(np.uint8), rules.depth_px, rules.around_px):
             continue
         others = ((labels[win] > 0) & ~own) | _unknown_specks(g_win, rules.max_px)
         if global_walls is not None:
@@ -1646,16 +1649,24 @@ def _beside_in(
 
 def _unknown_specks(g_state: NDArray[np.uint8], max_px: float) -> BoolArray:
     """The global map's unknown cells in components (8-connected) no wider than ``max_px``
-    either way and clear of the array's edge (one through it may be wider)."""
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(
-        (g_state == UNKNOWN).view(np.uint8), connectivity=8
-    )
+    either way and clear of the array's edge (:func:`_small_components`)."""
+    labels, _, small = _small_components(g_state == UNKNOWN, max_px)
+    return np.asarray(small[labels])
+
+
+def _small_components(
+    mask: BoolArray, max_px: float
+) -> tuple[NDArray[np.int32], NDArray[np.int32], BoolArray]:
+    """``mask``'s components (8-connected): their labels, OpenCV's stats, and per label
+    whether it is no wider than ``max_px`` either way and clear of the array's edge (one
+    through it may be wider than it shows); the background (label 0) is not."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
     left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
     width, height = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
     small = (width <= max_px) & (height <= max_px) & (left > 0) & (top > 0)
     small &= (left + width < labels.shape[1]) & (top + height < labels.shape[0])
-    small[0] = False  # the background
-    return np.asarray(small[labels])
+    small[0] = False
+    return np.asarray(labels, np.int32), np.asarray(stats, np.int32), small
 
 
 __all__ = [

@@ -497,7 +497,7 @@ def _diff_masks(
             local_state,
             roi_mask,
             resolution=grid.resolution,
-            min_px=_SMALL_MIN_CELLS * (global_map.resolution / grid.resolution) ** 2,
+            min_px=_small_min_px(global_map.resolution, grid),
             rules=dataclasses.replace(
                 _BESIDE_RULES,
                 max_extent_m=min(_BESIDE_RULES.max_extent_m, d.small_structure_m),
@@ -616,7 +616,7 @@ def _cluster_masks(
             resolution=grid.resolution,
             smaller_than_px=floor_px,
             max_extent_m=d.small_structure_m,
-            min_px=_SMALL_MIN_CELLS * (global_res_m / grid.resolution) ** 2,
+            min_px=_small_min_px(global_res_m, grid),
             min_share=_SMALL_SEEN_SHARE,
             clear_m=_SMALL_CLEAR_M,
             unseen_m=_SMALL_UNSEEN_M,
@@ -666,6 +666,12 @@ def _cluster_masks(
         )
     found = [f for f in found if f.kind != "removed" or not _faint(f, states, grid.resolution)]
     return cluster_stage.sort_by_area(found)
+
+
+def _small_min_px(global_res_m: float, grid: Grid) -> float:
+    """The fewest cells of ``grid`` a small structure of the global map (of ``global_res_m``
+    cells) has: ``_SMALL_MIN_CELLS`` of the global map's."""
+    return _SMALL_MIN_CELLS * (global_res_m / grid.resolution) ** 2
 
 
 def _faint(
