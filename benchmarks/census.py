@@ -36,7 +36,11 @@ Usage (the same ``--config`` as the run, if it had one)::
     .venv/bin/python benchmarks/census.py SET /tmp/run [BUNDLE_SUBSTRING ...] [--all]
 
 ``--counts FILE`` also writes the summary's counts as JSON: ``run_sets.py census`` runs this on
-many sets and adds them up.
+many sets and adds them up. ``--judged FILE`` (with ``--all`` implied) also writes every judged
+difference as a JSON line: bundle, kind, centroid, pixels, area, label, the check that decided
+and each check's verdict and measured values (a dataclass's fields and shares), the table
+behind a threshold, to be read with a few lines of Python (session 49 wrote three hooks in /tmp
+to get at these).
 
 The observers wrap module-level functions of the pipeline (``OBSERVED``); its tests run this
 script on bundles, and check that the checks' verdicts as recorded here drop exactly what the
@@ -48,6 +52,7 @@ is said so (``MISMATCH``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections import Counter
@@ -135,12 +140,13 @@ GROW_PX = 2
 
 @dataclass(frozen=True)
 class Verdict:
-    """What one re-fit check made of a difference: ``explained`` (the check drops it), and
-    what it measured, as text."""
+    """What one re-fit check made of a difference: ``explained`` (the check drops it), what
+    it measured as text, and the check's own value (``--judged`` writes it out)."""
 
     check: str
     explained: bool
     shown: str
+    value: Any = field(default=None, compare=False)
 
 
 @dataclass
@@ -232,7 +238,7 @@ def observing(trace: Trace) -> Iterator[Trace]:
                 else:
                     cells = first if isinstance(first, np.ndarray) else first.cells
                 trace.verdicts.setdefault(_key(cells), []).append(
-                    Verdict(name, verdict(value, kwargs), _shown(value))
+                    Verdict(name, verdict(value, kwargs), _shown(value), value)
                 )
             return value
 
@@ -273,6 +279,30 @@ def _shown(value: Any) -> str:
     if isinstance(value, float | np.floating):
         return f"{float(value):.2f}"
     return str(bool(value))
+
+
+def as_data(value: Any) -> dict[str, Any]:
+    """A check's value as JSON-ready numbers: a dataclass's fields and its ``*_share``
+    properties, a number as ``value``, anything else as a bool ``value``."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        data: dict[str, Any] = {
+            f.name: _number(getattr(value, f.name)) for f in dataclasses.fields(value)
+        }
+        for name in dir(type(value)):
+            if name.endswith("_share") and isinstance(getattr(type(value), name), property):
+                data[name] = _number(getattr(value, name))
+        return data
+    return {"value": _number(value)}
+
+
+def _number(value: Any) -> float | int | bool:
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return float(value)
+    return bool(value)
 
 
 def polygon_cells(
@@ -387,6 +417,8 @@ class Census:
 
     misses: Counter[tuple[str, str]] = field(default_factory=Counter)
     judged: Counter[tuple[str, str, str]] = field(default_factory=Counter)
+    # With every bundle and judged difference: one record per judged difference (``--judged``).
+    records: list[dict[str, Any]] = field(default_factory=list)
 
     def to_doc(self) -> dict[str, list[list[str | int]]]:
         """The counts as a JSON-ready document (``--counts``): rows of the keys and the count."""
@@ -460,11 +492,29 @@ def census_of_bundle(
         for k, s in zip(judged, labels, strict=True):
             check = decided(trace.of(k))
             census.judged[(k.kind, check, s.label)] += 1
+            census.records.append(judged_record(case.bundle_id, k, s.label, trace.of(k)))
             lines.append(
                 f"  JUDGED {s.label} {k.kind} at ({k.centroid[0]:.2f},{k.centroid[1]:.2f}) "
                 f"{k.pixels} px -> {check}: {_verdicts_text(trace.of(k))}"
             )
     return lines
+
+
+def judged_record(
+    bundle_id: str, difference: cluster_stage.Difference, label: str, verdicts: list[Verdict]
+) -> dict[str, Any]:
+    """One judged difference as a JSON-ready record: where it lies, its label (scored as if
+    reported), the check that decided, and each check's verdict and value."""
+    return {
+        "bundle": bundle_id,
+        "kind": difference.kind,
+        "centroid": [round(float(v), 3) for v in difference.centroid],
+        "pixels": int(difference.pixels),
+        "area_m2": round(float(difference.area_m2), 4),
+        "label": label,
+        "decided": decided(verdicts),
+        "checks": {v.check: {"explained": v.explained, **as_data(v.value)} for v in verdicts},
+    }
 
 
 def _mismatch(rerun: dict[str, Any], result: Result | None) -> list[str]:
@@ -511,7 +561,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--all", action="store_true", help="every bundle and judged difference")
     parser.add_argument("--config", type=Path, help="the configuration the run used")
     parser.add_argument("--counts", type=Path, help="also write the counts here, as JSON")
+    parser.add_argument(
+        "--judged",
+        type=Path,
+        help="also write every judged difference here, a JSON line each (implies --all)",
+    )
     args = parser.parse_args(argv)
+    every = args.all or args.judged is not None
     config = load_config(args.config)
     census = Census()
     for case in find_cases(args.set_dir):
@@ -522,11 +578,14 @@ def main(argv: list[str] | None = None) -> int:
         result = None
         if result_path.is_file():  # none: the bundle failed (bench_public writes no result)
             result = parse_result(yaml.safe_load(result_path.read_text(encoding="utf-8")))
-        for line in census_of_bundle(case, truth, result, config, census, every=args.all):
+        for line in census_of_bundle(case, truth, result, config, census, every=every):
             print(line, flush=True)
     print("\n".join(summary_lines(census)))
     if args.counts is not None:
         args.counts.write_text(json.dumps(census.to_doc()), encoding="utf-8")
+    if args.judged is not None:
+        lines = (json.dumps({"set": args.set_dir.name, **r}) for r in census.records)
+        args.judged.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
     return 0
 
 

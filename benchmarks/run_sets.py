@@ -19,7 +19,8 @@ positives before and after, then the totals per role (tuning, held out) and per 
 ``census.py SET RUN/NAME --counts RUN/census/NAME.json`` on each chosen set of a run (its
 lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the
 misses and the judged differences of all of them added up: where the changes of many sets
-were lost, in one table. ``table`` writes the numbers of two runs into the README's table of
+were lost, in one table (with ``--all``, each set's judged differences also as JSON lines in
+``RUN/census/NAME.judged.jsonl``: ``census.py --judged``). ``table`` writes the numbers of two runs into the README's table of
 totals (each row whose first cell names a set's arguments in backticks, or starts with the
 public set's name): precision, recall and F1 of the second run, F1 of the first as "before",
 and both alignment p90s (a tool three sessions wrote in /tmp and lost).
@@ -147,7 +148,9 @@ def _census_one(
     if not outbox.is_dir():
         return f"{bench_set.name:12s} FAILED: no run of it in {run_dir}", None
     cmd = [sys.executable, str(HERE / "census.py"), str(bench_set.path), str(outbox)]
-    cmd += ["--counts", str(counts_path)] + (["--all"] if every else [])
+    cmd += ["--counts", str(counts_path)]
+    if every:
+        cmd += ["--judged", str(out_dir / f"{bench_set.name}.judged.jsonl")]
     if config:
         cmd += ["--config", config]
     text_path = out_dir / f"{bench_set.name}.txt"

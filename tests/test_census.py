@@ -414,3 +414,65 @@ def test_run_sets_census_runs_the_census_on_each_set_and_pools_its_counts(
     assert [p.name for p in run_dir.glob("*.json")] == []
     text = (run_dir / "census" / "one.txt").read_text()
     assert "MISS 99 added" in text and f"FP #{fp_id} added" in text
+
+
+def test_the_judged_differences_written_as_json_lines_are_the_ones_the_census_counts(
+    census: ModuleType,
+    edited: tuple[Path, Path, dict[str, Any], int],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--judged`` (every bundle and judged difference, without ``--all`` given) writes one
+    JSON line per judged difference: its label and deciding check as the counts have them,
+    and the values each check measured."""
+    set_dir, outbox, _, _ = edited
+    judged_path, counts_path = tmp_path / "judged.jsonl", tmp_path / "counts.json"
+    argv = [str(set_dir), str(outbox), "--judged", str(judged_path), "--counts", str(counts_path)]
+    assert census.main(argv) == 0
+    capsys.readouterr()
+    records = [json.loads(line) for line in judged_path.read_text().splitlines()]
+    counted = json.loads(counts_path.read_text())["judged"]
+    assert records and len(records) == sum(n for *_, n in counted)
+    tally: dict[tuple[str, str, str], int] = {}
+    for r in records:
+        key = (r["kind"], r["decided"], r["label"])
+        tally[key] = tally.get(key, 0) + 1
+    assert sorted([*k, n] for k, n in tally.items()) == sorted(counted)
+    for r in records:
+        assert r["set"] == set_dir.name and r["bundle"] == "b1" and r["pixels"] > 0
+        assert r["label"] in {"correct", "neutral", "false_positive"}
+        # No drift: removed ones asked the faint-strip check only, which kept them.
+        assert r["kind"] == "removed" and list(r["checks"]) == ["faint"]
+        faint = r["checks"]["faint"]
+        assert faint["explained"] is False and r["decided"] == "reported"
+        assert faint["spread_m"] >= 0.0 and faint["faces"] >= faint["drawn"] >= 0
+        assert faint["drawn_share"] == pytest.approx(
+            faint["drawn"] / faint["faces"] if faint["faces"] else 1.0
+        )
+
+
+def test_a_checks_value_is_written_as_its_numbers(census: ModuleType) -> None:
+    assert census.as_data(refit_stage.Faces(walls=10, seen_behind=7, depth_m=0.3)) == {
+        "walls": 10,
+        "seen_behind": 7,
+        "depth_m": 0.3,
+        "behind_share": pytest.approx(0.7),
+    }
+    assert census.as_data(np.float32(0.5)) == {"value": 0.5}
+    assert census.as_data(np.bool_(True)) == {"value": True}
+    assert census.as_data(False) == {"value": False}
+    assert census.as_data(3) == {"value": 3}
+
+
+def test_run_sets_census_with_all_keeps_each_sets_judged_differences(
+    edited: tuple[Path, Path, dict[str, Any], int], tmp_path: Path
+) -> None:
+    set_dir, outbox, _, _ = edited
+    run_dir = tmp_path / "run"
+    shutil.copytree(outbox, run_dir / "one")
+    with benchmark_module("run_sets") as rs:
+        _, counts = rs._census_one(rs.BenchSet("one", "tuning", (), set_dir), run_dir, None, True)
+    assert counts is not None
+    lines = (run_dir / "census" / "one.judged.jsonl").read_text().splitlines()
+    assert len(lines) == sum(n for *_, n in counts["judged"]) > 0
+    assert {json.loads(line)["set"] for line in lines} == {set_dir.name}
