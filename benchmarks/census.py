@@ -16,7 +16,7 @@ gets the stage that lost it:
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
   ``pipeline._refit`` asks them (``floor``, ``faces``, ``band``, ``refit``, ``pass``, ``left out``,
-  ``ghost``, ``in front``, ``through``);
+  ``ghost``, ``in front``, ``through``, ``thin line``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
@@ -120,6 +120,7 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
     "in front": (refit_stage, "face_drawn_in_front", lambda value, _: bool(value)),
     "through": (refit_stage, "line_through_wall", lambda value, _: bool(value)),
+    "thin line": (refit_stage, "thin_line_by_wall", lambda value, _: bool(value)),
 }
 CHECKS = tuple(_CHECKS)
 # The checks given a difference's cells as nav2 points, and where among their arguments.

@@ -42,7 +42,7 @@ from mapserver.grid import (
     nonzero_cells,
     square_to,
 )
-from mapserver.maps import FREE, OCCUPIED
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN
 
 BoolArray = NDArray[np.bool_]
 
@@ -441,6 +441,55 @@ def faces_seen_from_behind(
     solid = _depth_in(global_walls[box])
     depth = min(float(solid[r, c].max()), math.ceil(reach) + steps + 1) * resolution
     return Faces(len(wr), int(np.count_nonzero(seen)), depth)
+
+
+def thin_line_by_wall(
+    cells: NDArray[np.intp],
+    global_walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    max_thickness_px: float = 1.6,
+    near_m: float = 0.6,
+    ring_m: float = 0.5,
+    unseen_share: float = 0.3,
+) -> bool:
+    """Whether an added difference's ``cells`` ((N, 2) row, col) are a wall's face drawn again
+    beside it by a pass with drift left in it: a line under ``max_thickness_px`` cells thick
+    on average (its cells over its length along its main direction, in cells), every cell
+    within ``near_m`` of ``global_walls``, and ``unseen_share`` or more of the cells within
+    ``ring_m`` of it that are off the global walls unknown in ``local_state`` (all (H, W), one
+    grid).
+
+    A pass that saw a face from afar or at a grazing angle draws it as a dotted line one cell
+    thick, seen from one side, with little of the floor around it; drift left in that pass
+    lays it a few decimetres off the face. What the robot saw from near is drawn thicker: a
+    new wall 0.15-0.25 m thick is drawn 3-5 cells thick, a box or a column as deep as its
+    outline, a line seen from its own side with the floor around it seen free.
+    """
+    rows, cols = cells[:, 0], cells[:, 1]
+    if len(rows) < 2:
+        return False
+    points = np.stack([cols, rows], axis=1).astype(float)
+    _, axis = main_axis(points)
+    along = points @ axis
+    length_px = float(along.max() - along.min()) + 1.0
+    if len(rows) / length_px >= max_thickness_px:
+        return False
+    margin = math.ceil(max(near_m, ring_m) / resolution) + 2
+    box = box_of_cells(rows, cols, margin, local_state.shape)
+    r, c = rows - box[0].start, cols - box[1].start
+    walls = global_walls[box]
+    to_wall = distance_to(walls) * resolution
+    if float(to_wall[r, c].max()) > near_m:
+        return False
+    off_line = np.ones(walls.shape, bool)
+    off_line[r, c] = False
+    to_line = distance_to(~off_line) * resolution
+    ring = off_line & (to_line <= ring_m) & ~walls
+    around = int(np.count_nonzero(ring))
+    unseen = int(np.count_nonzero(ring & (local_state[box] == UNKNOWN)))
+    return around > 0 and unseen >= unseen_share * around
 
 
 def _depth_in(walls: BoolArray) -> NDArray[np.float32]:

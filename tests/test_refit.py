@@ -25,6 +25,7 @@ from mapserver.refit import (
     ghost_of_wall,
     line_through_wall,
     spread_across_m,
+    thin_line_by_wall,
 )
 
 if TYPE_CHECKING:
@@ -1216,3 +1217,61 @@ def test_an_obstacle_turned_in_front_of_a_wall_seen_past_its_ends_is_not_explain
             loc[60:r, c - 1 : c + 2] = UNKNOWN  # the box's shadow
         loc[rows, cols] = OCCUPIED
         assert not _in_front(g, loc, np.column_stack((rows, cols)))
+
+
+def _beside_wall(
+    offset_px: int = 8, thick_px: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A corridor at 0.05 m: a wall along row 40 (cols 10-110), floor below it. The local map
+    draws the wall in place, the floor seen free beyond 0.6 m of it, and a line ``thick_px``
+    cells thick and 2 m long (cols 30-70) ``offset_px`` cells below the wall, the floor between
+    them and 0.25 m below the line unseen (seen from one side, from afar). The added
+    difference: that line."""
+    g = np.full((120, 140), FREE, np.uint8)
+    g[40, 10:111] = OCCUPIED
+    g[:40] = UNKNOWN
+    loc = np.full_like(g, FREE)
+    loc[:40] = UNKNOWN
+    loc[40, 10:111] = OCCUPIED
+    top = 40 + offset_px
+    loc[41 : top + thick_px + 5, 25:76] = UNKNOWN
+    loc[top : top + thick_px, 30:71] = OCCUPIED
+    cells = np.column_stack(np.nonzero(loc[:, :] == OCCUPIED))
+    cells = cells[cells[:, 0] >= top]
+    return g, loc, cells
+
+
+def _thin(g: np.ndarray, loc: np.ndarray, cells: np.ndarray) -> bool:
+    return thin_line_by_wall(cells, g == OCCUPIED, loc, resolution=RES)
+
+
+def test_a_thin_line_by_a_wall_its_floor_unseen_is_the_face_drawn_again() -> None:
+    g, loc, cells = _beside_wall()
+    g0, loc0 = g.copy(), loc.copy()
+    assert _thin(g, loc, cells)
+    assert (g == g0).all() and (loc == loc0).all()
+    # Dotted (every other cell): thinner still.
+    assert _thin(g, loc, cells[cells[:, 1] % 2 == 0])
+    # Slanted by a cell every 20 (1.4 degrees), as a pass with its heading off draws it.
+    slanted = cells.copy()
+    slanted[:, 0] += (slanted[:, 1] - 30) // 20
+    assert _thin(g, loc, slanted)
+
+
+def test_a_line_seen_thick_far_off_or_with_its_floor_is_not_a_face_drawn_again() -> None:
+    # A new wall 0.15 m thick (3 cells), the same place.
+    g, loc, cells = _beside_wall(thick_px=3)
+    assert len(cells) == 3 * 41 and not _thin(g, loc, cells)
+    # 2 cells thick: over the 1.6 cells asked on average.
+    g, loc, cells = _beside_wall(thick_px=2)
+    assert not _thin(g, loc, cells)
+    # The line 0.75 m from the wall (15 cells): farther than a face drawn again lands.
+    g, loc, cells = _beside_wall(offset_px=15)
+    assert not _thin(g, loc, cells)
+    # The floor around it seen free (a line seen from its own side, near): a change.
+    g, loc, cells = _beside_wall()
+    loc[41:60, 20:80] = FREE
+    loc[48, 30:71] = OCCUPIED
+    assert not _thin(g, loc, cells)
+    # A single cell, or nothing but a point: no line to measure.
+    assert not _thin(g, loc, cells[:1])
