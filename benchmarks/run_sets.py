@@ -25,10 +25,13 @@ totals (each row whose first cell names a set's arguments in backticks, or start
 public set's name): precision, recall and F1 of the second run, F1 of the first as "before",
 and both alignment p90s (a tool three sessions wrote in /tmp and lost).
 
-A variant of the code is measured from a git worktree with a virtual environment of its own
-(``python3 -m venv .venv && .venv/bin/pip install -e '.[dev]'`` there, then that
-``.venv/bin/python benchmarks/run_sets.py run ...``): the main checkout's editable install
-comes before ``PYTHONPATH``, so pointing ``PYTHONPATH`` at the worktree runs the main code.
+A variant of the code is measured from a git worktree with the main checkout's environment:
+``PYTHONPATH=WORKTREE .venv/bin/python WORKTREE/benchmarks/run_sets.py run ...`` runs the
+worktree's code (the editable install's finder comes after the path entries; session 49
+checked that ``import mapserver`` resolves to the worktree so, and that a variant measured so
+gave the same results once committed). ``--public`` finds the public sets in ``../shared``
+beside the script's checkout, so from a worktree elsewhere measure them with
+``bench_public.py`` on their paths.
 """
 
 from __future__ import annotations
