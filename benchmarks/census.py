@@ -15,8 +15,8 @@ gets the stage that lost it:
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
-  ``pipeline._refit`` asks them (``floor``, ``faces``, ``band``, ``refit``, ``pass``, ``left out``,
-  ``ghost``, ``in front``, ``through``, ``thin line``);
+  ``pipeline._refit`` asks them (``floor``, ``faces``, ``faint fold``, ``band``, ``refit``,
+  ``pass``, ``left out``, ``ghost``, ``in front``, ``through``, ``thin line``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
@@ -109,6 +109,7 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
         "faces_seen_from_behind",
         lambda faces, kwargs: pipeline._folded(faces, kwargs["resolution"]),
     ),
+    "faint fold": (pipeline, "_faint_and_folded", lambda value, _: bool(value)),
     "band": (
         refit_stage,
         "band_in_structure",

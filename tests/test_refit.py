@@ -1275,3 +1275,30 @@ def test_a_line_seen_thick_far_off_or_with_its_floor_is_not_a_face_drawn_again()
     assert not _thin(g, loc, cells)
     # A single cell, or nothing but a point: no line to measure.
     assert not _thin(g, loc, cells[:1])
+
+
+@pytest.mark.parametrize(
+    ("drawn", "walls", "seen_behind", "explained"),
+    [
+        (False, 20, 15, True),  # neither wall drawn, 75 % of the local walls seen from behind
+        (False, 20, 12, True),  # 60 %: the fold check's own share
+        (False, 20, 10, False),  # 50 %: not folded enough
+        (True, 20, 15, False),  # the walls around drawn in place: not faint
+        (False, 0, 0, False),  # no local wall around it at all
+    ],
+)
+def test_a_removal_where_the_map_is_both_faint_and_folded_is_explained(
+    drawn: bool, walls: int, seen_behind: int, explained: bool
+) -> None:
+    """A removed difference after a drifting session whose surroundings the local map both
+    drew faintly (under 70 % of the faces around it in place) and folded (60 % of its walls
+    around it seen free behind): a part drawn twice, neither copy in place."""
+    from mapserver.cluster import Difference
+
+    global_state, local_state, cells = _corridor_strip(drawn=drawn)
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert strip.drawn_share == (1.0 if drawn else 0.0)
+    diff = Difference("removed", (2.5, 3.0), (2.25, 2.95, 2.75, 3.05), 0.0, len(cells), cells)
+    faces = Faces(walls=walls, seen_behind=seen_behind, depth_m=0.05)
+    folded = pipeline._faint_and_folded(diff, faces, global_state, local_state, RES)
+    assert folded is explained
