@@ -304,7 +304,7 @@ def _number(value: Any) -> float | int | bool:
         return int(value)
     if isinstance(value, float | np.floating):
         return float(value)
-    return bool(value)
+    raise TypeError(f"a check's value of type {type(value).__name__} is no number")
 
 
 def polygon_cells(

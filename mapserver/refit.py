@@ -445,30 +445,35 @@ def faces_seen_from_behind(
 
 def thin_line_by_wall(
     cells: NDArray[np.intp],
+    global_state: NDArray[np.uint8],
     global_walls: BoolArray,
     local_state: NDArray[np.uint8],
     *,
     resolution: float,
     max_thickness_px: float = 1.6,
+    max_spread_m: float = 0.05,
     near_m: float = 0.6,
     ring_m: float = 0.5,
     unseen_share: float = 0.3,
 ) -> bool:
     """Whether an added difference's ``cells`` ((N, 2) row, col) are a wall's face drawn again
-    beside it by a pass with drift left in it: a line under ``max_thickness_px`` cells thick
-    on average (its cells over its length along its main direction, in cells), every cell
-    within ``near_m`` of ``global_walls``, and ``unseen_share`` or more of the cells within
-    ``ring_m`` of it that are off the global walls unknown in ``local_state`` (all (H, W), one
+    beside it by a pass with drift left in it: a line (its cells spread under ``max_spread_m``
+    across their main direction, :func:`spread_across_m`) on average under
+    ``max_thickness_px`` cells thick (its cells over its length along that direction, in
+    cells: a staircase at 45 degrees two cells a row is 1.4 thick), every cell within
+    ``near_m`` of ``global_walls``, and ``unseen_share`` or more of the floor within ``ring_m``
+    of it (free in ``global_state``, off its walls) unknown in ``local_state`` (all (H, W), one
     grid).
 
     A pass that saw a face from afar or at a grazing angle draws it as a dotted line one cell
     thick, seen from one side, with little of the floor around it; drift left in that pass
     lays it a few decimetres off the face. What the robot saw from near is drawn thicker: a
     new wall 0.15-0.25 m thick is drawn 3-5 cells thick, a box or a column as deep as its
-    outline, a line seen from its own side with the floor around it seen free.
+    outline or as the corner of two faces, a line seen from its own side with the floor around
+    it seen free.
     """
     rows, cols = cells[:, 0], cells[:, 1]
-    if len(rows) < 2:
+    if len(rows) < 2 or spread_across_m(cells, resolution=resolution) >= max_spread_m:
         return False
     points = np.stack([cols, rows], axis=1).astype(float)
     _, axis = main_axis(points)
@@ -480,13 +485,15 @@ def thin_line_by_wall(
     box = box_of_cells(rows, cols, margin, local_state.shape)
     r, c = rows - box[0].start, cols - box[1].start
     walls = global_walls[box]
-    to_wall = distance_to(walls) * resolution
-    if float(to_wall[r, c].max()) > near_m:
+    # In cells, so that a cell exactly near_m away counts (float32 metres would not).
+    to_wall = distance_to(walls)
+    if float(to_wall[r, c].max()) > near_m / resolution + 1e-3:
         return False
     off_line = np.ones(walls.shape, bool)
     off_line[r, c] = False
-    to_line = distance_to(~off_line) * resolution
-    ring = off_line & (to_line <= ring_m) & ~walls
+    to_line = distance_to(~off_line)
+    floor = (global_state[box] == FREE) & ~walls
+    ring = off_line & (to_line <= ring_m / resolution + 1e-3) & floor
     around = int(np.count_nonzero(ring))
     unseen = int(np.count_nonzero(ring & (local_state[box] == UNKNOWN)))
     return around > 0 and unseen >= unseen_share * around

@@ -458,6 +458,19 @@ def test_a_checks_value_is_written_as_its_numbers(census: ModuleType) -> None:
         "depth_m": 0.3,
         "behind_share": pytest.approx(0.7),
     }
+    strip = refit_stage.Strip(spread_m=0.02, along_m=0.3, faces=40, drawn=10)
+    assert census.as_data(strip) == {
+        "spread_m": 0.02,
+        "along_m": 0.3,
+        "faces": 40,
+        "drawn": 10,
+        "drawn_share": 0.25,
+    }
+    band = refit_stage.Band(depth_m=0.2, length_m=1.0, inner=10, walled=8)
+    assert census.as_data(band)["walled_share"] == pytest.approx(0.8)
+    assert json.loads(json.dumps(census.as_data(band))) == census.as_data(band)
+    with pytest.raises(TypeError):
+        census.as_data("a text")
     assert census.as_data(np.float32(0.5)) == {"value": 0.5}
     assert census.as_data(np.bool_(True)) == {"value": True}
     assert census.as_data(False) == {"value": False}

@@ -1242,7 +1242,7 @@ def _beside_wall(
 
 
 def _thin(g: np.ndarray, loc: np.ndarray, cells: np.ndarray) -> bool:
-    return thin_line_by_wall(cells, g == OCCUPIED, loc, resolution=RES)
+    return thin_line_by_wall(cells, g, g == OCCUPIED, loc, resolution=RES)
 
 
 def test_a_thin_line_by_a_wall_its_floor_unseen_is_the_face_drawn_again() -> None:
@@ -1277,6 +1277,29 @@ def test_a_line_seen_thick_far_off_or_with_its_floor_is_not_a_face_drawn_again()
     assert not _thin(g, loc, cells[:1])
 
 
+def test_a_thin_line_is_measured_against_the_floor_the_building_has_and_up_to_its_reach() -> None:
+    # 0.15 m below the wall, the floor below it seen free: what lies behind the wall (unknown
+    # in both maps, never floor) does not make the floor around it unseen.
+    g, loc, cells = _beside_wall(offset_px=3)
+    loc[41:60, 20:80] = FREE
+    loc[43, 30:71] = OCCUPIED
+    assert not _thin(g, loc, cells)
+    # 0.6 m (12 cells) off the wall, the reach asked, is within it; 13 cells is not.
+    assert _thin(*_beside_wall(offset_px=12))
+    assert not _thin(*_beside_wall(offset_px=13))
+
+
+def test_a_corner_of_two_faces_is_no_line_drawn_again() -> None:
+    # An L of two thin arms (a box seen from one side at its corner), by the wall, the floor
+    # around it unseen: as thin as a line, but it spreads across itself.
+    g, loc, cells = _beside_wall()
+    arm = np.column_stack([np.arange(48, 60), np.full(12, 30)])
+    corner = np.concatenate([cells, arm])
+    loc[arm[:, 0], arm[:, 1]] = OCCUPIED
+    assert len(corner) / 41 < 1.6 and spread_across_m(corner, resolution=RES) >= 0.05
+    assert not _thin(g, loc, corner)
+
+
 @pytest.mark.parametrize(
     ("drawn", "walls", "seen_behind", "explained"),
     [
@@ -1285,6 +1308,7 @@ def test_a_line_seen_thick_far_off_or_with_its_floor_is_not_a_face_drawn_again()
         (False, 20, 10, False),  # 50 %: not folded enough
         (True, 20, 15, False),  # the walls around drawn in place: not faint
         (False, 0, 0, False),  # no local wall around it at all
+        (False, 2, 2, False),  # two cells of local wall (0.1 m), both seen from behind
     ],
 )
 def test_a_removal_where_the_map_is_both_faint_and_folded_is_explained(
@@ -1302,3 +1326,21 @@ def test_a_removal_where_the_map_is_both_faint_and_folded_is_explained(
     faces = Faces(walls=walls, seen_behind=seen_behind, depth_m=0.05)
     folded = pipeline._faint_and_folded(diff, faces, global_state, local_state, RES)
     assert folded is explained
+
+
+def test_a_removal_among_few_faces_the_robot_looked_at_is_not_faint_and_folded() -> None:
+    """The local map saw only the strip itself free, nothing around it: too few faces looked
+    at (under 10) to call the place faint, however folded its walls."""
+    from mapserver.cluster import Difference
+
+    global_state, _, cells = _corridor_strip(drawn=False)
+    local_state = np.full_like(global_state, UNKNOWN)
+    local_state[cells[:, 0], cells[:, 1]] = FREE
+    # The floor next to six cells of the wall beside the strip seen, that wall not drawn.
+    upper, end = int(cells[0, 0]), int(cells[:, 1].max()) + 1
+    local_state[upper + 1, end + 3 : end + 9] = FREE
+    strip = faint_strip(cells, global_state, local_state, resolution=RES)
+    assert 0 < strip.faces < 10 and strip.drawn_share < 0.7
+    diff = Difference("removed", (2.5, 3.0), (2.25, 2.95, 2.75, 3.05), 0.0, len(cells), cells)
+    faces = Faces(walls=20, seen_behind=20, depth_m=0.05)
+    assert not pipeline._faint_and_folded(diff, faces, global_state, local_state, RES)
