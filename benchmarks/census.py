@@ -285,7 +285,7 @@ def _shown(value: Any) -> str:
 
 def as_data(value: Any) -> dict[str, Any]:
     """A check's value as JSON-ready numbers: a dataclass's fields and its ``*_share``
-    properties, a number as ``value``, anything else as a bool ``value``."""
+    properties, a number or a bool as ``value``; TypeError for anything else."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         data: dict[str, Any] = {
             f.name: _number(getattr(value, f.name)) for f in dataclasses.fields(value)
@@ -492,12 +492,13 @@ def census_of_bundle(
             truth, Result("ok", tuple(_as_scored(k, i) for i, k in enumerate(judged)))
         ).differences
         for k, s in zip(judged, labels, strict=True):
-            check = decided(trace.of(k))
+            verdicts = trace.of(k)
+            check = decided(verdicts)
             census.judged[(k.kind, check, s.label)] += 1
-            census.records.append(judged_record(case.bundle_id, k, s.label, trace.of(k)))
+            census.records.append(judged_record(case.bundle_id, k, s.label, verdicts))
             lines.append(
                 f"  JUDGED {s.label} {k.kind} at ({k.centroid[0]:.2f},{k.centroid[1]:.2f}) "
-                f"{k.pixels} px -> {check}: {_verdicts_text(trace.of(k))}"
+                f"{k.pixels} px -> {check}: {_verdicts_text(verdicts)}"
             )
     return lines
 

@@ -693,7 +693,7 @@ def _faint_strip(strip: refit_stage.Strip, resolution: float) -> bool:
     """Whether ``strip`` is a line (spread across under a pass's line, and at least
     ``_FAINT_ELONGATION`` times as long as it is wide, a cell wide at least: a small box or a
     few cells seen gone are no line) among faces the local map mostly does not draw."""
-    line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * resolution)
+    line_m = _line_spread_m(resolution)
     # A uniform segment's length is sqrt(12) times its standard deviation.
     length_m, width_m = math.sqrt(12) * strip.along_m, math.sqrt(12) * strip.spread_m
     return (
@@ -850,33 +850,6 @@ _LEFT_OUT_NEAR_RATIO = 2.0
 # changes).
 _GHOST_MIN_LENGTH_M = 0.6
 
-
-@dataclass(frozen=True)
-class _ThinLine:
-    """What :func:`mapserver.refit.thin_line_by_wall` asks of an added difference the other
-    checks kept, after a drifting session: a line (spread across under a pass's line,
-    ``_FOLD_LINE_SPREAD_M``, ``_FOLD_LINE_CELLS``) on average under ``max_thickness_px`` cells
-    thick, every cell within ``near_m`` of a global wall, ``unseen_share`` of the floor within
-    ``ring_m`` of it never seen."""
-
-    max_thickness_px: float = 1.6
-    near_m: float = 0.6
-    ring_m: float = 0.5
-    unseen_share: float = 0.3
-
-
-# Session 49, census of the 16 drifting tuning sets (session 48's code; the added differences
-# every check kept, with census.py --judged's labels and a hook measuring each one's shape):
-# of 1215, 37 false; their thickness (cells over length, in cells) median 1.66 against 3.66
-# for the real ones (5 % of those under 1.95: a box seen from one side is its face), all
-# within 0.75 m of a global wall for half of them (a tenth of the real ones), a third of the
-# floor around them unseen (a tenth of the real ones). Under 1.6 cells, within 0.6 m and 30 %
-# unseen: 5 false, no real or neutral one. Over the 59 generated sets: 6 false positives
-# fewer (1 in the held-out drift8888) for 1 change fewer found (wander11's gen-03: a real box
-# seen as 12 cells of two faces, the floor around it unseen, 0.6 m from a wall drawn grey).
-# Mended after a second read (a line asked, the floor the global map has, the reach in
-# cells); with the folded-and-faint check's mend too, 3 false positives back over the sets.
-_THIN_LINE = _ThinLine()
 _PASS_GAP_M = 0.5
 _PASS_SHARE = 0.8
 # An added one, though, is a wall where rays ended: when the robot's own run (the piece's)
@@ -908,6 +881,14 @@ _PASS_NEAR_RATIO = 4.0
 # by 0.004-0.006.
 _FOLD_LINE_SPREAD_M = 0.05
 _FOLD_LINE_CELLS = 0.6
+
+
+def _line_spread_m(resolution: float) -> float:
+    """How far (metres) a line a pass drew of a wall spreads across itself at most, on a grid
+    of ``resolution`` cells: ``_FOLD_LINE_SPREAD_M``, or ``_FOLD_LINE_CELLS`` of a coarse cell."""
+    return max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * resolution)
+
+
 # A line a pass drew lands farther off the wall the farther that pass drove from it: its
 # piece's transform is fitted mostly on the walls near its run, and a heading error of that
 # transform (or of the scans that drew the line) moves what its rays drew at range r by r
@@ -1126,18 +1107,26 @@ def _refit(
             tolerance_m=d.tolerance_m,
         ):
             return True
-        # Session 49 (_THIN_LINE): a face drawn again beside itself, seen from one side.
+        # Session 49, census of the 16 drifting tuning sets (session 48's code; the added
+        # differences every check kept, with census.py --judged's labels and a hook measuring
+        # each one's shape): of 1215, 37 false; their thickness (cells over length, in cells)
+        # median 1.66 against 3.66 for the real ones (5 % of those under 1.95: a box seen from
+        # one side is its face), all within 0.75 m of a global wall for half of them (a tenth
+        # of the real ones), a third of the floor around them unseen (a tenth of the real
+        # ones). Under 1.6 cells, within 0.6 m and 30 % unseen (refit.thin_line_by_wall's
+        # defaults): 5 false, no real or neutral one. Over the 59 generated sets: 6 false
+        # positives fewer (1 in the held-out drift8888) for 1 change fewer found (wander11's
+        # gen-03: a real box seen as 12 cells of two faces, the floor around it unseen, 0.6 m
+        # from a wall drawn grey). Mended after a second read (a line asked, the floor the
+        # global map has, the reach in cells); with the folded-and-faint check's mend too, 3
+        # false positives back over the sets.
         return diff.kind == "added" and refit_stage.thin_line_by_wall(
             diff.cells,
             view.state,
             global_walls,
             local_state,
             resolution=grid.resolution,
-            max_spread_m=max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution),
-            max_thickness_px=_THIN_LINE.max_thickness_px,
-            near_m=_THIN_LINE.near_m,
-            ring_m=_THIN_LINE.ring_m,
-            unseen_share=_THIN_LINE.unseen_share,
+            max_spread_m=_line_spread_m(grid.resolution),
         )
 
     return [diff for diff in differences if diff.cells is None or not explained(diff)]
@@ -1242,7 +1231,7 @@ def _seen_on_another_pass(
     # not a line, within the tolerance.
     landing_m, heading_slope = 2 * tolerance_m, 0.0
     if diff.kind == "added":
-        line_m = max(_FOLD_LINE_SPREAD_M, _FOLD_LINE_CELLS * grid.resolution)
+        line_m = _line_spread_m(grid.resolution)
         if refit_stage.spread_across_m(diff.cells, resolution=grid.resolution) >= line_m:
             landing_m = tolerance_m
         else:

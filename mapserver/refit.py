@@ -476,9 +476,7 @@ def thin_line_by_wall(
     if len(rows) < 2 or spread_across_m(cells, resolution=resolution) >= max_spread_m:
         return False
     points = np.stack([cols, rows], axis=1).astype(float)
-    _, axis = main_axis(points)
-    along = points @ axis
-    length_px = float(along.max() - along.min()) + 1.0
+    length_px = extent_along(points, *main_axis(points)) + 1.0
     if len(rows) / length_px >= max_thickness_px:
         return False
     margin = math.ceil(max(near_m, ring_m) / resolution) + 2
@@ -489,11 +487,10 @@ def thin_line_by_wall(
     to_wall = distance_to(walls)
     if float(to_wall[r, c].max()) > near_m / resolution + 1e-3:
         return False
-    off_line = np.ones(walls.shape, bool)
-    off_line[r, c] = False
-    to_line = distance_to(~off_line)
-    floor = (global_state[box] == FREE) & ~walls
-    ring = off_line & (to_line <= ring_m / resolution + 1e-3) & floor
+    line = np.zeros(walls.shape, bool)
+    line[r, c] = True
+    floor = (global_state[box] == FREE) & ~walls & ~line
+    ring = floor & (distance_to(line) <= ring_m / resolution + 1e-3)
     around = int(np.count_nonzero(ring))
     unseen = int(np.count_nonzero(ring & (local_state[box] == UNKNOWN)))
     return around > 0 and unseen >= unseen_share * around
