@@ -15,7 +15,7 @@ gets the stage that lost it:
 * ``diff filters``: in the raw mask, but not after the noise floor and the strips along walls;
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
-  ``pipeline._refit`` asks them (``floor``, ``faces``, ``faint fold``, ``band``, ``refit``,
+  ``explain.unexplained`` asks them (``floor``, ``faces``, ``faint fold``, ``band``, ``refit``,
   ``pass``, ``left out``, ``ghost``, ``in front``, ``through``, ``thin line``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
@@ -71,7 +71,7 @@ from numpy.typing import NDArray
 
 from mapserver import cluster as cluster_stage
 from mapserver import diff as diff_stage
-from mapserver import piecewise, pipeline
+from mapserver import explain, piecewise, pipeline
 from mapserver import refit as refit_stage
 from mapserver.config import Config, load_config
 from mapserver.errors import MapserverError
@@ -88,35 +88,35 @@ from mapserver.scoring import (
     score_bundle,
 )
 
-# The re-fit's checks (pipeline._refit, in its order): the function, and whether its value
+# The re-fit's checks (explain.unexplained, in its order): the function, and whether its value
 # explains a difference away (its keyword arguments at hand). Each is given the difference's
 # cells (or the difference) first, but ``left out``, which is given its cells' nav2 points
 # third (``_POINTS_AT``).
 _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]] = {
-    # Asked of every removed cluster, drifted or not, before the re-fit (pipeline._faint).
+    # Asked of every removed cluster, drifted or not, before the re-fit (explain.faint).
     "faint": (
         refit_stage,
         "faint_strip",
-        lambda strip, kwargs: pipeline._faint_strip(strip, kwargs["resolution"]),
+        lambda strip, kwargs: explain._faint_strip(strip, kwargs["resolution"]),
     ),
     "floor": (
         refit_stage,
         "floor_seen_share",
-        lambda share, _: bool(share < pipeline._FLOOR_SEEN_SHARE),
+        lambda share, _: bool(share < explain._FLOOR_SEEN_SHARE),
     ),
     "faces": (
         refit_stage,
         "faces_seen_from_behind",
-        lambda faces, kwargs: pipeline._folded(faces, kwargs["resolution"]),
+        lambda faces, kwargs: explain._folded(faces, kwargs["resolution"]),
     ),
-    "faint fold": (pipeline, "_faint_and_folded", lambda value, _: bool(value)),
+    "faint fold": (explain, "_faint_and_folded", lambda value, _: bool(value)),
     "band": (
         refit_stage,
         "band_in_structure",
-        lambda band, kwargs: pipeline._face_displaced(band, kwargs["resolution"]),
+        lambda band, kwargs: explain._face_displaced(band, kwargs["resolution"]),
     ),
     "refit": (refit_stage, "explained_by_refit", lambda value, _: bool(value)),
-    "pass": (pipeline, "_seen_on_another_pass", lambda value, _: bool(value)),
+    "pass": (explain, "_seen_on_another_pass", lambda value, _: bool(value)),
     "left out": (piecewise, "left_out_pass_near", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
     "in front": (refit_stage, "face_drawn_in_front", lambda value, _: bool(value)),
@@ -174,13 +174,13 @@ class Trace:
 
     def of(self, difference: cluster_stage.Difference) -> list[Verdict]:
         """The verdicts on ``difference``, in the order the re-fit asked them: those recorded
-        on its cells and on their nav2 points (``pipeline._nav2_points`` on this trace's grid,
+        on its cells and on their nav2 points (``explain._nav2_points`` on this trace's grid,
         as the re-fit makes them)."""
         if difference.cells is None:
             return []
         verdicts = list(self.verdicts.get(_key(difference.cells), []))
         if self.grid is not None:
-            points = pipeline._nav2_points(self.grid, difference.cells)
+            points = explain._nav2_points(self.grid, difference.cells)
             verdicts += self.verdicts.get(_key(points), [])
         return sorted(verdicts, key=lambda v: CHECKS.index(v.check))
 
@@ -347,7 +347,7 @@ def _inside(
 
 
 def decided(verdicts: list[Verdict]) -> str:
-    """The check that explained a difference away (the first: ``pipeline._refit`` asks no
+    """The check that explained a difference away (the first: ``explain.unexplained`` asks no
     more), else ``reported``."""
     return next((v.check for v in verdicts if v.explained), "reported")
 

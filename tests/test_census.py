@@ -103,7 +103,7 @@ def test_a_change_nothing_shows_is_lost_before_any_difference_and_an_unlisted_on
     assert fp.endswith("no re-fit (the map did not drift)")
     assert not any("MISMATCH" in line for line in lines)
     # Without a re-fit only the removed differences are judged, by the faint-strip check
-    # alone (pipeline._faint), which keeps these.
+    # alone (explain.faint), which keeps these.
     assert counts.judged and all(
         kind == "removed" and check == "reported" for kind, check, _ in counts.judged
     )

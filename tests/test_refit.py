@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
-from mapserver import pipeline
+from mapserver import explain
 from mapserver.grid import nonzero_cells
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
 from mapserver.refit import (
@@ -397,35 +397,29 @@ def _band_or_cut(*, cut: bool, edge: int = OCCUPIED) -> tuple[np.ndarray, np.nda
 
 
 def test_a_face_drawn_inside_its_structure_leaves_a_long_shallow_walled_band() -> None:
-    from mapserver import pipeline
-
     walls, local, gone = _band_or_cut(cut=False)
     band = band_in_structure(gone, walls, local, resolution=RES)
     # Row 39, six cells from the floor: 6 x 0.955 (the 3x3 chamfer's step) x 0.05 m.
     assert band.depth_m == pytest.approx(0.2865, abs=0.001)
     assert band.length_m == pytest.approx(3.0, abs=0.01)  # 60 cells
     assert band.inner == 62 and band.walled_share == 1.0  # row 38, 60 cells and two corners
-    assert pipeline._face_displaced(band, RES)
+    assert explain._face_displaced(band, RES)
 
 
 def test_a_band_whose_inner_edge_went_unseen_is_no_face() -> None:
-    from mapserver import pipeline
-
     walls, local, gone = _band_or_cut(cut=False, edge=UNKNOWN)
     band = band_in_structure(gone, walls, local, resolution=RES)
     assert band.inner == 62 and band.walled == 0
-    assert not pipeline._face_displaced(band, RES)
+    assert not explain._face_displaced(band, RES)
 
 
 def test_a_half_disc_cut_out_of_a_structure_is_twice_as_long_as_it_is_deep() -> None:
-    from mapserver import pipeline
-
     walls, local, gone = _band_or_cut(cut=True)
     band = band_in_structure(gone, walls, local, resolution=RES)
     assert band.depth_m == pytest.approx(0.6, abs=0.06)
     assert band.length_m == pytest.approx(1.25, abs=0.01)  # 25 cells along the face
     assert band.walled_share > 0.9  # its new face drawn all round
-    assert not pipeline._face_displaced(band, RES)
+    assert not explain._face_displaced(band, RES)
 
 
 def test_a_gap_through_a_thin_wall_has_no_inner_edge() -> None:
@@ -444,7 +438,6 @@ def test_a_cut_through_a_wall_beside_a_junction_has_a_few_inner_cells_not_a_row(
     through by a disc 1.2 m across next to the junction: the junction's cells beside the cut
     lie deeper than it, two of them, not an edge along it. Long, shallow and walled there, it
     is still a gap."""
-    from mapserver import pipeline
 
     walls = np.zeros((80, 80), bool)
     walls[37:43] = True
@@ -454,9 +447,9 @@ def test_a_cut_through_a_wall_beside_a_junction_has_a_few_inner_cells_not_a_row(
     local = np.full((80, 80), FREE, np.uint8)
     local[walls & ~gone] = OCCUPIED
     band = band_in_structure(cells(gone), walls, local, resolution=RES)
-    assert band.length_m >= pipeline._BAND_LENGTH_RATIO * band.depth_m
+    assert band.length_m >= explain._BAND_LENGTH_RATIO * band.depth_m
     assert band.inner == 2 and band.walled_share == 1.0
-    assert not pipeline._face_displaced(band, RES)
+    assert not explain._face_displaced(band, RES)
 
 
 @pytest.mark.parametrize(
@@ -472,9 +465,8 @@ def test_a_cut_through_a_wall_beside_a_junction_has_a_few_inner_cells_not_a_row(
 def test_a_displaced_face_is_long_shallow_and_walled(
     length_m: float, depth_m: float, inner: int, walled: int, displaced: bool
 ) -> None:
-    from mapserver import pipeline
 
-    assert pipeline._face_displaced(Band(depth_m, length_m, inner, walled), 0.05) is displaced
+    assert explain._face_displaced(Band(depth_m, length_m, inner, walled), 0.05) is displaced
 
 
 @pytest.mark.parametrize(
@@ -537,29 +529,19 @@ def _refit(
     *,
     in_pieces: bool,
 ) -> list[Difference]:
-    """The pipeline's re-fit of difference ``found`` of a local map aligned onto the global
-    states ``glob`` (local states ``local_state`` on the same grid at ``res``, its origin at
-    0, 0) after a drift correction of 0.3 m, in ``pieces`` when ``in_pieces``; the differences
-    it keeps."""
-    from mapserver import piecewise, pipeline
+    """The re-fit (``explain.unexplained``) of difference ``found`` of a local map aligned onto
+    the global states ``glob`` (local states ``local_state`` on the same grid at ``res``, its
+    origin at 0, 0), compared in ``pieces`` when ``in_pieces`` (in none that holds its cells
+    when those are None), else whole; the differences it keeps."""
+    from mapserver import piecewise
     from mapserver.align import GlobalView
     from mapserver.config import Config
-    from mapserver.geometry import Transform2D
     from mapserver.grid import Grid
 
     view = GlobalView(Grid(0.0, 0.0, res, glob.shape[1], glob.shape[0]), glob, glob == OCCUPIED)
-    aligned = pipeline._Aligned(
-        view=view,
-        local_state=local_state,
-        transform=Transform2D(0.0, 0.0, 0.0),
-        drift_m=0.3,
-        pieces=pieces,
-        in_pieces=in_pieces,
-        left_out=None,
-        compared=True,
-        kept=1.0,
-        warnings=(),
-    )
+    compared = None
+    if in_pieces:
+        compared = pieces if pieces is not None else piecewise.Pieces((), 0.0)
     no_added = np.zeros(glob.shape, bool)
 
     def reach_m() -> float:
@@ -569,7 +551,9 @@ def _refit(
         route = np.concatenate([piece.run for piece in pieces.pieces])
         return piecewise.seen_reach_m(slam_map, route)
 
-    return list(pipeline._refit([found], aligned, no_added, Config(), slam_map, reach_m))
+    return explain.unexplained(
+        [found], view, local_state, compared, no_added, Config(), slam_map, reach_m
+    )
 
 
 def test_a_removal_seen_through_a_narrow_band_is_kept_when_the_map_fits_whole() -> None:
@@ -631,9 +615,8 @@ def test_a_wall_drawn_on_one_face_with_its_other_part_seen_free_is_a_fold() -> N
 def test_the_fold_asks_more_of_the_faces_the_shallower_it_lies(
     walls: int, seen_behind: int, depth_m: float, fold: bool
 ) -> None:
-    from mapserver import pipeline
 
-    assert pipeline._folded(Faces(walls, seen_behind, depth_m), 0.05) is fold
+    assert explain._folded(Faces(walls, seen_behind, depth_m), 0.05) is fold
 
 
 def test_a_line_spreads_less_across_itself_than_a_block_or_a_corner() -> None:
@@ -857,7 +840,6 @@ def test_open_is_read_in_a_crop_as_over_the_whole_map() -> None:
     the points asked about; it must read what the whole map says, the map's edges included."""
     import cv2
 
-    from mapserver import pipeline
     from mapserver.grid import Grid
 
     rng = np.random.default_rng(5)
@@ -870,7 +852,7 @@ def test_open_is_read_in_a_crop_as_over_the_whole_map() -> None:
     expected = Grid.of_map(local).sample(whole, xy, False)
     assert expected.any() and not expected.all()
     for chunk in np.array_split(np.arange(len(xy)), 40):
-        got = pipeline._open_in(local, xy[chunk], wall_m=0.15)
+        got = explain._open_in(local, xy[chunk], wall_m=0.15)
         assert np.array_equal(got, expected[chunk])
 
 
@@ -1060,7 +1042,7 @@ def test_a_strip_of_a_wall_seen_free_between_walls_drawn_in_place_is_no_faint_st
     assert strip.faces >= 10 and strip.drawn == strip.faces
     assert strip.spread_m == 0.0
     assert math.sqrt(12) * strip.along_m == pytest.approx(0.5, abs=2 * res)  # 0.5 m long
-    assert not pipeline._faint_strip(strip, res)
+    assert not explain._faint_strip(strip, res)
 
 
 @pytest.mark.parametrize("res", [0.025, 0.05, 0.1])
@@ -1070,7 +1052,7 @@ def test_a_strip_of_a_wall_seen_free_where_no_wall_around_is_drawn_is_a_faint_st
     global_state, local_state, cells = _corridor_strip(drawn=False, res=res)
     strip = faint_strip(cells, global_state, local_state, resolution=res)
     assert strip.faces >= 10 and strip.drawn == 0 and strip.drawn_share == 0.0
-    assert pipeline._faint_strip(strip, res)
+    assert explain._faint_strip(strip, res)
 
 
 @pytest.mark.parametrize(("off_m", "drawn"), [(0.1, True), (0.15, False)])
@@ -1080,7 +1062,7 @@ def test_a_face_counts_as_drawn_with_a_local_wall_within_a_tenth_of_a_metre(
     global_state, local_state, cells = _corridor_strip(drawn=True, wall_off_m=off_m)
     strip = faint_strip(cells, global_state, local_state, resolution=RES)
     assert (strip.drawn_share == 1.0) is drawn and (strip.drawn == 0) is not drawn
-    assert pipeline._faint_strip(strip, RES) is not drawn
+    assert explain._faint_strip(strip, RES) is not drawn
 
 
 def test_the_back_of_a_wall_the_robot_never_looked_at_is_not_counted() -> None:
@@ -1107,7 +1089,7 @@ def test_a_block_gone_is_no_strip_however_faint_the_walls_around_it() -> None:
         )
         strip = faint_strip(block, global_state, local_state, resolution=RES)
         assert strip.drawn_share < 0.5
-        assert not pipeline._faint_strip(strip, RES)
+        assert not explain._faint_strip(strip, RES)
 
 
 def test_a_strip_with_no_faces_around_it_keeps_its_evidence() -> None:
@@ -1118,7 +1100,7 @@ def test_a_strip_with_no_faces_around_it_keeps_its_evidence() -> None:
     cells = np.array([[30, c] for c in range(25, 35)])
     strip = faint_strip(cells, global_state, local_state, resolution=RES)
     assert strip.faces == 0 and strip.drawn_share == 1.0
-    assert not pipeline._faint_strip(strip, RES)
+    assert not explain._faint_strip(strip, RES)
 
 
 def _face_in_front(offset_px: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1324,7 +1306,7 @@ def test_a_removal_where_the_map_is_both_faint_and_folded_is_explained(
     assert strip.drawn_share == (1.0 if drawn else 0.0)
     diff = Difference("removed", (2.5, 3.0), (2.25, 2.95, 2.75, 3.05), 0.0, len(cells), cells)
     faces = Faces(walls=walls, seen_behind=seen_behind, depth_m=0.05)
-    folded = pipeline._faint_and_folded(diff, faces, global_state, local_state, RES)
+    folded = explain._faint_and_folded(diff, faces, global_state, local_state, RES)
     assert folded is explained
 
 
@@ -1343,4 +1325,4 @@ def test_a_removal_among_few_faces_the_robot_looked_at_is_not_faint_and_folded()
     assert 0 < strip.faces < 10 and strip.drawn_share < 0.7
     diff = Difference("removed", (2.5, 3.0), (2.25, 2.95, 2.75, 3.05), 0.0, len(cells), cells)
     faces = Faces(walls=20, seen_behind=20, depth_m=0.05)
-    assert not pipeline._faint_and_folded(diff, faces, global_state, local_state, RES)
+    assert not explain._faint_and_folded(diff, faces, global_state, local_state, RES)
