@@ -118,7 +118,7 @@ class DiffConfig(_Frozen):
     min_removed_cells: int = Field(8, ge=1)
     """A removed obstacle must be seen free over at least this many local-map cells (from
     ``min_local_cells`` on when it is a small structure seen gone whole, ``small_structure_m``,
-    or cuts a thin wall in two: ``pipeline._CUT_RULES``)."""
+    or cuts a thin wall in two: ``compare._CUT_RULES``)."""
     removed_depth_m: float = Field(0.15, ge=0)
     """A removed obstacle must be seen free this deep inside the structure (at least two cells
     of the local map and one of the global map) ..."""

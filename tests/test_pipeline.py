@@ -25,8 +25,8 @@ from worlds import (
     write_bundle,
 )
 
+from mapserver import compare, pipeline, synth
 from mapserver import diff as diff_stage
-from mapserver import pipeline, synth
 from mapserver.align import make_view
 from mapserver.config import Config, DiffConfig, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
@@ -328,13 +328,9 @@ def test_after_a_drifting_session_a_small_removal_with_its_evidence_is_still_rep
             added=piece if kind == "added" else np.zeros_like(piece),
             removed=piece if kind == "removed" else np.zeros_like(piece),
         )
-        found = pipeline._cluster_masks(
-            masks, piece, grid, config, local, states, 0.05, drifted=True
-        )
+        found = compare.obstacles(masks, piece, grid, config, local, states, 0.05, drifted=True)
         assert [d.kind for d in found] == (["removed"] if kind == "removed" else [])
-        still = pipeline._cluster_masks(
-            masks, piece, grid, config, local, states, 0.05, drifted=False
-        )
+        still = compare.obstacles(masks, piece, grid, config, local, states, 0.05, drifted=False)
         assert [d.kind for d in still] == [kind]
 
 
@@ -362,7 +358,7 @@ def test_a_piece_gone_beside_a_band_without_evidence_is_kept_for_its_evidence_s_
     removed = evidence.copy()
     removed[10:13, 15:35] = True  # the band, 1.0 m long, 3 cells wide: no evidence
     masks = diff_stage.DiffMasks(added=np.zeros_like(removed), removed=removed)
-    found = pipeline._cluster_masks(
+    found = compare.obstacles(
         masks, evidence, grid, Config(), local, (seen, seen), 0.05, drifted=drifted
     )
     assert [d.kind for d in found] == (["removed"] if kept else [])
@@ -381,9 +377,7 @@ def test_a_small_structure_is_counted_in_the_global_maps_cells(
     g[40:42, 40:42] = OCCUPIED
     gone = (g == OCCUPIED) & (local.state == FREE)
     masks = diff_stage.DiffMasks(added=np.zeros_like(gone), removed=gone)
-    found = pipeline._cluster_masks(
-        masks, gone, grid, Config(), local, (g, local.state), global_res_m
-    )
+    found = compare.obstacles(masks, gone, grid, Config(), local, (g, local.state), global_res_m)
     assert [d.kind for d in found] == kinds
 
 
@@ -405,7 +399,7 @@ def test_a_small_structure_seen_gone_on_a_coarse_local_map_is_reported(
     config = Config()
     assert gone.sum() * 0.05**2 < config.pipeline.diff.min_removed_cells * 0.1**2
     masks = diff_stage.DiffMasks(added=np.zeros_like(gone), removed=gone)
-    found = pipeline._cluster_masks(masks, gone, grid, config, local, (g, seen), 0.05)
+    found = compare.obstacles(masks, gone, grid, config, local, (g, seen), 0.05)
     assert [d.kind for d in found] == kinds
 
 
@@ -430,14 +424,14 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_reported(
     gone = np.where(g == OCCUPIED, FREE, g)
     no_line = diff_stage.LineRules(min_length_m=10.0)
     for drawn, line_rules, kinds in (
-        (seen, pipeline._LINE_RULES, ["removed"]),
+        (seen, compare._LINE_RULES, ["removed"]),
         (seen, no_line, ["removed"]),
-        (gone, pipeline._LINE_RULES, ["removed"]),
+        (gone, compare._LINE_RULES, ["removed"]),
         (gone, no_line, []),
     ):
         local = from_states(drawn.astype(np.uint8), 0.05, (0.0, 0.0, 0.0))
-        monkeypatch.setattr(pipeline, "_LINE_RULES", line_rules)
-        found = pipeline._cluster_masks(
+        monkeypatch.setattr(compare, "_LINE_RULES", line_rules)
+        found = compare.obstacles(
             masks, piece, grid, config, local, (g, local.state), 0.05, drifted=True
         )
         assert [d.kind for d in found] == kinds
@@ -463,7 +457,7 @@ def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
     local = from_states(np.full((50, 50), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
     global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
     config = Config()
-    masks, evidence = pipeline._diff_masks(
+    masks, evidence = compare.masks(
         g,
         g == OCCUPIED,
         seen,
@@ -477,13 +471,13 @@ def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
     assert masks.removed.sum() == 16 < config.pipeline.diff.min_removed_cells * 4
 
     def kinds() -> list[str]:
-        found = pipeline._cluster_masks(
+        found = compare.obstacles(
             masks, evidence, grid, config, local, (g, seen), 0.05, drifted=True
         )
         return [d.kind for d in found]
 
     assert kinds() == ["removed"]
-    monkeypatch.setattr(pipeline, "_LINE_RULES", diff_stage.LineRules(min_length_m=10.0))
+    monkeypatch.setattr(compare, "_LINE_RULES", diff_stage.LineRules(min_length_m=10.0))
     assert kinds() == []
 
 
@@ -498,9 +492,7 @@ def test_after_a_drifting_session_an_added_obstacle_of_twelve_cells_is_reported(
         face = np.zeros((100, 100), bool)
         face[40, 40 : 40 + n] = True  # one row of n cells, as a face seen from one side
         masks = diff_stage.DiffMasks(added=face, removed=np.zeros_like(face))
-        found = pipeline._cluster_masks(
-            masks, face, grid, config, local, states, 0.05, drifted=True
-        )
+        found = compare.obstacles(masks, face, grid, config, local, states, 0.05, drifted=True)
         assert [d.kind for d in found] == kinds
 
 
@@ -515,7 +507,7 @@ def test_wall_ends_keep_the_wider_tolerance_after_a_drifting_session() -> None:
     roi = np.ones(g.shape, bool)
 
     def removed_rows(drifted: bool) -> set[int]:
-        masks, _ = pipeline._diff_masks(
+        masks, _ = compare.masks(
             g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, drifted=drifted
         )
         return {int(r) for r in np.nonzero(masks.removed)[0]}
@@ -537,13 +529,13 @@ def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> 
     global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
     roi = np.ones(g.shape, bool)
 
-    def compare(reach_m: float) -> tuple[diff_stage.DiffMasks, np.ndarray]:
-        return pipeline._diff_masks(
+    def masks_with(reach_m: float) -> tuple[diff_stage.DiffMasks, np.ndarray]:
+        return compare.masks(
             g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, reach_m=lambda: reach_m
         )
 
-    near_masks, near = compare(8.0)
-    far_masks, far = compare(30.0)
+    near_masks, near = masks_with(8.0)
+    far_masks, far = masks_with(30.0)
     assert near_masks.removed[43:46, 10:90].all() and far_masks.removed[43:46, 10:90].all()
     assert near[44:46, 10:90].all() and not far.any()
 
@@ -565,7 +557,7 @@ def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_ray
     route_xy = grid.to_world(np.array([[50.0, row] for row in range(785, 800)]))
 
     def evidence(xy: np.ndarray | None) -> np.ndarray:
-        return pipeline._diff_masks(
+        return compare.masks(
             g,
             g == OCCUPIED,
             loc,
@@ -596,7 +588,7 @@ def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_ray
 def test_the_depth_a_removal_must_show_is_two_local_cells_and_one_global_cell(
     local_res_m: float, global_res_m: float, depth_m: float
 ) -> None:
-    assert pipeline._removal_depth_m(0.15, local_res_m, global_res_m) == pytest.approx(depth_m)
+    assert compare._removal_depth_m(0.15, local_res_m, global_res_m) == pytest.approx(depth_m)
 
 
 @pytest.mark.parametrize("seed", [0, 3])
