@@ -27,7 +27,7 @@ checks it passed. With ``--all``, every difference the
 re-fit judged is listed with its label (``score_bundle`` on it as if reported: ``correct``,
 ``neutral``, ``false_positive``) and the check that decided it (the first to explain it, or
 ``reported``), and a table counts them by that check and label: the census behind the
-thresholds in ``pipeline.py``. With a map store in the configuration, the fleet's own
+thresholds in ``explain.py``. With a map store in the configuration, the fleet's own
 comparison against the stored map's current version is not recorded.
 
 Usage (the same ``--config`` as the run, if it had one)::

@@ -7,10 +7,12 @@ and measures the removal evidence; :func:`obstacles` clusters the masks
 (:mod:`mapserver.cluster`) with the floors on area and evidence and the rules that report a
 piece under the floor whole (a small structure seen gone, a cut through a thin wall, a thin
 wall seen free), and drops a wall's line seen free too faintly (:func:`mapserver.explain.faint`).
-Both are asked twice per bundle with a map store: against the bundle's own global map and
-against the stored map's current version. Each threshold carries the census and benchmark that
-set it. Moved here from ``pipeline.py`` in session 50, unchanged (every result of the 59
-generated sets and of public, public-realism the same before and after).
+Both are asked against the bundle's own global map and, with a map store whose current version
+is not the bundle's, against that version too. Each threshold carries the census and benchmark
+that set it. Moved here from ``pipeline.py`` in session 50, unchanged (``masks`` was
+``pipeline._diff_masks``, ``obstacles`` ``pipeline._cluster_masks``, the rest kept their names;
+every result of the 59 generated sets and of public, public-realism the same before and
+after).
 """
 
 from __future__ import annotations

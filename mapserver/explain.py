@@ -3,16 +3,18 @@
 After a drifting session (a drift correction of decimetres, or an alignment in pieces) the
 local map still holds what drift drew: a wall seen twice on a revisit, a pass's floor laid over
 a structure, a face drawn in front of itself or beside itself, a line drawn at a heading error
-across the building. :func:`unexplained` asks each difference the checks in the order
-``pipeline`` runs them and keeps those no check explains; :func:`faint`, asked of every removed
-difference whether the session drifted or not, drops a wall's line seen free where the robot
-saw that part of the building too faintly to say.
+across the building. :func:`unexplained` asks each difference the checks in the order its
+docstring lists and keeps those no check explains (``pipeline``'s re-fit stage calls it after a
+drifting session). :func:`faint`, asked by :func:`mapserver.compare.obstacles` of every removed
+cluster whether the session drifted or not, drops a wall's line seen free where the robot saw
+that part of the building too faintly to say.
 
 The measures are :mod:`mapserver.refit`'s pure functions (and :mod:`mapserver.piecewise`'s for
 the passes of a route aligned in pieces); this module holds the rules over them: the thresholds,
 each with the census and the benchmark that set it, and the order they are asked in. Moved here
-from ``pipeline.py`` in session 50, unchanged (every result of the 59 generated sets and of
-public, public-realism the same before and after).
+from ``pipeline.py`` in session 50, unchanged (``unexplained`` was ``pipeline._refit``,
+``faint`` ``pipeline._faint``, the rest kept their names; every result of the 59 generated sets
+and of public, public-realism the same before and after).
 """
 
 from __future__ import annotations
@@ -97,7 +99,7 @@ _FLOOR_SEEN_SHARE = 0.95
 # theirs) whose run came within the sensor's reach of it (piecewise.seen_reach_m: how far
 # from the route the local map saw anything, its lidar's range where views are long) and that
 # puts it at least _PASS_GAP_M elsewhere (0.5 m: the pieces' own
-# agreement; nearer, the re-fit above looks) puts _PASS_SHARE of it where the building has it:
+# agreement; nearer, the re-fit check, asked before it, looks) puts _PASS_SHARE of it where the building has it:
 # an added one within twice the differences' tolerance of a global wall (each piece carries
 # its own drift correction, this check does not), a removed one on free floor off every wall.
 # Which pass saw a cell the fused map does not say: a wall really gone where two passes
@@ -264,8 +266,8 @@ def unexplained(
     """Of ``differences`` (found on ``view.grid`` between ``view``'s global map and the
     aligned local map's states ``local_state``, the added ones among the cells ``added``; the
     local map ``local`` itself, in the slam frame; ``pieces``: the alignment in pieces the
-    local map was compared in, None when it was compared whole), those that no check below
-    explains: a small local re-fit of the walls around them does not explain, nor a
+    local map was compared in, None when it was compared whole), those that a small local
+    re-fit of the walls around them does not explain, nor a
     move of the added cells around them onto a wall seen in place, the floor between seen free
     (a wall drawn twice), nor,
     in a map aligned in pieces, for a removed one the floor around it left unseen

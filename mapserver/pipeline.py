@@ -478,6 +478,7 @@ def _refit(
 ) -> list[cluster_stage.Difference]:
     """The re-fit stage (:func:`mapserver.explain.unexplained`) on the local map as compared:
     the differences that what drift drew in it does not explain."""
+    # Pieces tried, but the map warped whole (they found no bend): compared whole.
     pieces = aligned.pieces if aligned.in_pieces else None
     return explain.unexplained(
         differences, aligned.view, aligned.local_state, pieces, added, config, local, reach_m
