@@ -40,7 +40,11 @@ many sets and adds them up. ``--judged FILE`` (with ``--all`` implied) also writ
 difference as a JSON line: bundle, kind, centroid, pixels, area, label, the check that decided
 and each check's verdict and measured values (a dataclass's fields and shares), the table
 behind a threshold, to be read with a few lines of Python (session 49 wrote three hooks in /tmp
-to get at these).
+to get at these). ``--clusters FILE`` (with ``--all`` implied) writes every cluster the cluster
+stage made, before its floors on area and evidence, one JSON line each: bundle, kind, centroid,
+pixels, area, whether the floors kept it, its label as if reported, and for a removed one the
+cells of it in the removal evidence and their share: what the floors drop, real and false
+(session 50 wrote that census as a script in /tmp).
 
 The observers wrap module-level functions of the pipeline (``OBSERVED``); its tests run this
 script on bundles, and check that the checks' verdicts as recorded here drop exactly what the
@@ -421,6 +425,8 @@ class Census:
     judged: Counter[tuple[str, str, str]] = field(default_factory=Counter)
     # With every bundle and judged difference: one record per judged difference (``--judged``).
     records: list[dict[str, Any]] = field(default_factory=list)
+    # ... and one per cluster, kept or not (``--clusters``).
+    cluster_records: list[dict[str, Any]] = field(default_factory=list)
 
     def to_doc(self) -> dict[str, list[list[str | int]]]:
         """The counts as a JSON-ready document (``--counts``): rows of the keys and the count."""
@@ -487,6 +493,7 @@ def census_of_bundle(
             f"{checks or 'no re-fit (the map did not drift)'}"
         )
     if every and trace is not None:
+        census.cluster_records += cluster_records(case.bundle_id, truth, trace)
         judged = [k for k in trace.kept if trace.of(k)]
         labels = score_bundle(
             truth, Result("ok", tuple(_as_scored(k, i) for i, k in enumerate(judged)))
@@ -501,6 +508,40 @@ def census_of_bundle(
                 f"{k.pixels} px -> {check}: {_verdicts_text(verdicts)}"
             )
     return lines
+
+
+def cluster_records(bundle_id: str, truth: Truth, trace: Trace) -> list[dict[str, Any]]:
+    """Every cluster of a bundle's comparison, before the floors on area and evidence, as
+    JSON-ready records: where it lies, its size, its removal evidence (removed ones: the cells
+    of it in the evidence mask, and their share), whether the cluster stage kept it, and its
+    label (scored as if it alone were reported with the others: ``correct``, ``neutral``,
+    ``false_positive``). The census of what the floors drop: the question a threshold on them
+    asks."""
+    clusters = [c for c in trace.clusters if c.cells is not None]
+    if not clusters:
+        return []
+    kept = {_key(k.cells) for k in trace.kept if k.cells is not None}
+    labels = score_bundle(
+        truth, Result("ok", tuple(_as_scored(c, i) for i, c in enumerate(clusters)))
+    ).differences
+    out = []
+    for c, scored in zip(clusters, labels, strict=True):
+        assert c.cells is not None
+        record: dict[str, Any] = {
+            "bundle": bundle_id,
+            "kind": c.kind,
+            "centroid": [round(float(v), 3) for v in c.centroid],
+            "pixels": int(c.pixels),
+            "area_m2": round(float(c.area_m2), 4),
+            "kept": _key(c.cells) in kept,
+            "label": scored.label,
+        }
+        if c.kind == "removed" and trace.evidence is not None:
+            shown = trace.evidence[c.cells[:, 0], c.cells[:, 1]]
+            record["evidence_px"] = int(shown.sum())
+            record["evidence_share"] = round(float(shown.mean()), 4)
+        out.append(record)
+    return out
 
 
 def judged_record(
@@ -569,8 +610,13 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         help="also write every judged difference here, a JSON line each (implies --all)",
     )
+    parser.add_argument(
+        "--clusters",
+        type=Path,
+        help="also write every cluster, kept or dropped by the floors, here (implies --all)",
+    )
     args = parser.parse_args(argv)
-    every = args.all or args.judged is not None
+    every = args.all or args.judged is not None or args.clusters is not None
     config = load_config(args.config)
     census = Census()
     for case in find_cases(args.set_dir):
@@ -586,9 +632,10 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(summary_lines(census)))
     if args.counts is not None:
         args.counts.write_text(json.dumps(census.to_doc()), encoding="utf-8")
-    if args.judged is not None:
-        lines = (json.dumps({"set": args.set_dir.name, **r}) for r in census.records)
-        args.judged.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
+    for path, records in ((args.judged, census.records), (args.clusters, census.cluster_records)):
+        if path is not None:
+            lines = (json.dumps({"set": args.set_dir.name, **r}) for r in records)
+            path.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
     return 0
 
 

@@ -20,7 +20,8 @@ positives before and after, then the totals per role (tuning, held out) and per 
 lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) and prints the
 misses and the judged differences of all of them added up: where the changes of many sets
 were lost, in one table (with ``--all``, each set's judged differences also as JSON lines in
-``RUN/census/NAME.judged.jsonl``: ``census.py --judged``). ``table`` writes the numbers of two
+``RUN/census/NAME.judged.jsonl``: ``census.py --judged``, and its clusters, kept or dropped by
+the floors, in ``RUN/census/NAME.clusters.jsonl``: ``census.py --clusters``). ``table`` writes the numbers of two
 runs into the README's table of totals (each row whose first cell names a set's arguments in
 backticks, or starts with the public set's name): precision, recall and F1 of the second run,
 F1 of the first as "before", and both alignment p90s (a tool three sessions wrote in /tmp and
@@ -148,15 +149,16 @@ def _census_one(
     out_dir.mkdir(parents=True, exist_ok=True)
     counts_path = out_dir / f"{bench_set.name}.json"
     judged_path = out_dir / f"{bench_set.name}.judged.jsonl"
-    counts_path.unlink(missing_ok=True)
-    judged_path.unlink(missing_ok=True)
+    clusters_path = out_dir / f"{bench_set.name}.clusters.jsonl"
+    for stale in (counts_path, judged_path, clusters_path):
+        stale.unlink(missing_ok=True)
     outbox = run_dir / bench_set.name
     if not outbox.is_dir():
         return f"{bench_set.name:12s} FAILED: no run of it in {run_dir}", None
     cmd = [sys.executable, str(HERE / "census.py"), str(bench_set.path), str(outbox)]
     cmd += ["--counts", str(counts_path)]
     if every:
-        cmd += ["--judged", str(judged_path)]
+        cmd += ["--judged", str(judged_path), "--clusters", str(clusters_path)]
     if config:
         cmd += ["--config", config]
     text_path = out_dir / f"{bench_set.name}.txt"

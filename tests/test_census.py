@@ -451,6 +451,47 @@ def test_the_judged_differences_written_as_json_lines_are_the_ones_the_census_co
         )
 
 
+def test_every_cluster_is_written_with_whether_the_floors_kept_it_and_its_label(
+    census: ModuleType,
+    edited: tuple[Path, Path, dict[str, Any], int],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--clusters`` writes every cluster the cluster stage made, before its floors: the kept
+    ones are what the bundle reported (no drift: no re-fit, and the faint check kept them), the
+    difference whose change was taken out of the truth is labelled a false positive, and a
+    removed one carries its cells in the removal evidence."""
+    set_dir, outbox, _, fp_id = edited
+    clusters_path = tmp_path / "clusters.jsonl"
+    assert census.main([str(set_dir), str(outbox), "--clusters", str(clusters_path)]) == 0
+    capsys.readouterr()
+    records = [json.loads(line) for line in clusters_path.read_text().splitlines()]
+    result = yaml.safe_load((outbox / "b1" / "result.yaml").read_text())
+    reported = sorted(
+        (d["kind"], round(d["centroid"]["x"], 2), round(d["centroid"]["y"], 2))
+        for d in result["differences"]
+    )
+    kept = sorted(
+        (r["kind"], round(r["centroid"][0], 2), round(r["centroid"][1], 2))
+        for r in records
+        if r["kept"]
+    )
+    assert kept == reported and len(records) >= len(reported)
+    fp = next(d for d in result["differences"] if d["id"] == fp_id)
+    at = (fp["centroid"]["x"], fp["centroid"]["y"])
+    (same,) = [r for r in records if np.hypot(*np.subtract(r["centroid"], at)) < 0.01]
+    assert same["label"] == "false_positive" and same["kind"] == "added" and same["kept"]
+    removed = [r for r in records if r["kind"] == "removed"]
+    assert removed
+    for r in records:
+        assert r["set"] == set_dir.name and r["bundle"] == "b1" and r["pixels"] > 0
+        assert r["label"] in {"correct", "neutral", "false_positive"}
+        assert ("evidence_px" in r) == (r["kind"] == "removed")
+    for r in removed:
+        assert 0 <= r["evidence_px"] <= r["pixels"]
+        assert r["evidence_share"] == pytest.approx(r["evidence_px"] / r["pixels"], abs=1e-4)
+
+
 def test_a_checks_value_is_written_as_its_numbers(census: ModuleType) -> None:
     assert census.as_data(refit_stage.Faces(walls=10, seen_behind=7, depth_m=0.3)) == {
         "walls": 10,
@@ -489,3 +530,7 @@ def test_run_sets_census_with_all_keeps_each_sets_judged_differences(
     lines = (run_dir / "census" / "one.judged.jsonl").read_text().splitlines()
     assert len(lines) == sum(n for *_, n in counts["judged"]) > 0
     assert {json.loads(line)["set"] for line in lines} == {set_dir.name}
+    clusters = (run_dir / "census" / "one.clusters.jsonl").read_text().splitlines()
+    assert len(clusters) >= len(lines) and all(
+        json.loads(c)["set"] == set_dir.name for c in clusters
+    )
