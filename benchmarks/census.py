@@ -527,15 +527,8 @@ def cluster_records(bundle_id: str, truth: Truth, trace: Trace) -> list[dict[str
     out = []
     for c, scored in zip(clusters, labels, strict=True):
         assert c.cells is not None
-        record: dict[str, Any] = {
-            "bundle": bundle_id,
-            "kind": c.kind,
-            "centroid": [round(float(v), 3) for v in c.centroid],
-            "pixels": int(c.pixels),
-            "area_m2": round(float(c.area_m2), 4),
-            "kept": _key(c.cells) in kept,
-            "label": scored.label,
-        }
+        record = _where(bundle_id, c)
+        record |= {"kept": _key(c.cells) in kept, "label": scored.label}
         if c.kind == "removed" and trace.evidence is not None:
             shown = trace.evidence[c.cells[:, 0], c.cells[:, 1]]
             record["evidence_px"] = int(shown.sum())
@@ -550,14 +543,21 @@ def judged_record(
     """One judged difference as a JSON-ready record: where it lies, its label (scored as if
     reported), the check that decided, and each check's verdict and value."""
     return {
+        **_where(bundle_id, difference),
+        "label": label,
+        "decided": decided(verdicts),
+        "checks": {v.check: {"explained": v.explained, **as_data(v.value)} for v in verdicts},
+    }
+
+
+def _where(bundle_id: str, difference: cluster_stage.Difference) -> dict[str, Any]:
+    """The first fields of a difference's JSON record: its bundle, kind, centroid, size."""
+    return {
         "bundle": bundle_id,
         "kind": difference.kind,
         "centroid": [round(float(v), 3) for v in difference.centroid],
         "pixels": int(difference.pixels),
         "area_m2": round(float(difference.area_m2), 4),
-        "label": label,
-        "decided": decided(verdicts),
-        "checks": {v.check: {"explained": v.explained, **as_data(v.value)} for v in verdicts},
     }
 
 

@@ -21,11 +21,11 @@ lines in ``RUN/census/NAME.txt``, beside the run's documents, never among them) 
 misses and the judged differences of all of them added up: where the changes of many sets
 were lost, in one table (with ``--all``, each set's judged differences also as JSON lines in
 ``RUN/census/NAME.judged.jsonl``: ``census.py --judged``, and its clusters, kept or dropped by
-the floors, in ``RUN/census/NAME.clusters.jsonl``: ``census.py --clusters``). ``table`` writes the numbers of two
-runs into the README's table of totals (each row whose first cell names a set's arguments in
-backticks, or starts with the public set's name): precision, recall and F1 of the second run,
-F1 of the first as "before", and both alignment p90s (a tool three sessions wrote in /tmp and
-lost).
+the floors, in ``RUN/census/NAME.clusters.jsonl``: ``census.py --clusters``). ``table`` writes
+the numbers of two runs into the README's table of totals (each row whose first cell names a
+set's arguments in backticks, or starts with the public set's name): precision, recall and F1
+of the second run, F1 of the first as "before", and both alignment p90s (a tool three sessions
+wrote in /tmp and lost).
 
 A variant of the code is measured from a git worktree with the main checkout's environment:
 ``PYTHONPATH=WORKTREE .venv/bin/python WORKTREE/benchmarks/run_sets.py run ...`` runs the
