@@ -81,6 +81,7 @@ def masks(
         end_tolerance_m=(
             d.drifted_removed_end_tolerance_m if drifted else d.removed_end_tolerance_m
         ),
+        speck_m2=d.unknown_speck_m2,
     )
     min_px = max(1, round(d.min_local_cells * (local.resolution / grid.resolution) ** 2))
     filtered = diff_stage.filter_noise(raw, min_pixels=min_px)

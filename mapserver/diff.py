@@ -130,6 +130,7 @@ def raw_differences(
     unknown_is_wall: bool = True,
     extra_tolerance_m: NDArray[np.float32] | None = None,
     end_tolerance_m: float | None = None,
+    speck_m2: float = 0.0,
 ) -> DiffMasks:
     """Cells that differ between the maps, before noise filtering.
 
@@ -160,6 +161,11 @@ def raw_differences(
         Optional, smaller than the removed tolerance: the tolerance for removed cells past the
         end of a local wall, in line with the global wall (a gap in a wall), where the walls
         fit (no extra tolerance). The removed tolerance is for a wall seen off to one side.
+    speck_m2
+        With ``unknown_is_wall``: an unknown patch of the global map no larger than this, in
+        the open (:func:`unknown_specks`), hides local walls within ``tolerance_m`` only, not
+        within the extra tolerance: a speck is an object's size or nothing, not the edge of a
+        map's knowledge that a drifted wall may be seen beyond. 0: every unknown patch alike.
     """
     if global_state.shape != local_state.shape or roi.shape != global_state.shape:
         raise ValueError(
@@ -184,13 +190,18 @@ def raw_differences(
     g_walls = g_occ if global_walls is None else (g_occ | global_walls[box])
     if unknown_is_wall:
         g_walls = g_walls | (g_state == UNKNOWN)
+    # The walls the misfit's extra tolerance reaches from: all but the unknown specks.
+    far_walls = g_walls
+    if unknown_is_wall and speck_m2 > 0 and extra_tolerance_m is not None:
+        max_cells = max(1, math.floor(speck_m2 / resolution**2))
+        far_walls = g_walls & ~unknown_specks(g_state == UNKNOWN, max_cells)
     # ``distance_to(walls) > tol`` as a dilation by the offsets that are not beyond tol (same
     # cells, a fraction of the cost).
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~within(g_walls, tol_px)
         if extra_tolerance_m is not None:
-            _keep_far(added, g_walls, tolerance_m + extra_tolerance_m[box], resolution)
+            _keep_far(added, far_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         seen = removed.copy()
@@ -215,6 +226,22 @@ def raw_differences(
             removed |= _past_wall_ends(ends, l_occ, g_occ, pad=reach_px, min_run=run)
     added_full[box], removed_full[box] = added, removed
     return DiffMasks(added_full, removed_full)
+
+
+def unknown_specks(unknown: BoolArray, max_cells: int) -> BoolArray:
+    """The patches of ``unknown`` (8-connected) of at most ``max_cells`` cells that do not touch
+    the array's edge (a patch cut by it may be larger): specks the mapping rays missed in the
+    open, or a pole they hit now and then. (H, W) bool."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros(unknown.shape, bool)
+    h, w = unknown.shape
+    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    right, bottom = left + stats[:, cv2.CC_STAT_WIDTH], top + stats[:, cv2.CC_STAT_HEIGHT]
+    small = (stats[:, cv2.CC_STAT_AREA] <= max_cells) & (left > 0) & (top > 0)
+    small &= (right < w) & (bottom < h)
+    small[0] = False  # the background
+    return np.asarray(small[labels])
 
 
 def _near_face(

@@ -336,6 +336,58 @@ def test_a_wall_at_the_edge_of_what_the_global_map_knows_is_not_added() -> None:
     assert d.added[:, 78].all()
 
 
+def _speck_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An open hall at 0.1 m with one unknown cell (a speck the mapping rays missed), a new box
+    0.3 m square beside it, and the misfit's extra tolerance 0.3 m everywhere."""
+    shape = (60, 60)
+    g = np.full(shape, FREE, np.uint8)
+    g[30, 30] = UNKNOWN
+    loc = g.copy()
+    loc[30, 30] = FREE
+    loc[29:32, 31:34] = OCCUPIED  # the box, its nearest face a cell from the speck
+    extra = np.full(shape, 0.3, np.float32)
+    return g, loc, np.ones(shape, bool), extra
+
+
+def test_an_unknown_speck_hides_a_new_box_only_within_the_plain_tolerance() -> None:
+    g, loc, roi, extra = _speck_scene()
+    args = {"resolution": 0.1, "tolerance_m": 0.15, "extra_tolerance_m": extra}
+    # Taken as the edge of what the map knows, the speck's 0.45 m hides the whole box.
+    assert not raw_differences(g, loc, roi, **args).added.any()
+    d = raw_differences(g, loc, roi, speck_m2=0.05, **args)
+    # As a speck: only the cells within 0.15 m (1.5 cells) of it are hidden.
+    assert not d.added[29:32, 31].any()
+    assert d.added[29:32, 32:34].all()
+    assert d.added.sum() == 6
+    # A patch larger than a speck is still the edge of what the map knows.
+    g[20:40, 20:31] = UNKNOWN
+    assert not raw_differences(g, loc, roi, speck_m2=0.05, **args).added.any()
+
+
+def test_a_wall_on_an_unknown_speck_is_the_speck_s_object_not_added() -> None:
+    g, loc, roi, extra = _speck_scene()
+    loc[29:32, 31:34] = FREE
+    loc[29:32, 29:32] = OCCUPIED  # a pole the global map drew as a speck, seen a cell larger
+    d = raw_differences(
+        g, loc, roi, resolution=0.1, tolerance_m=0.15, extra_tolerance_m=extra, speck_m2=0.05
+    )
+    assert not d.added.any()
+
+
+def test_unknown_specks_are_small_patches_off_the_edge() -> None:
+    from mapserver.diff import unknown_specks
+
+    unknown = np.zeros((20, 20), bool)
+    unknown[5, 5] = True  # a speck
+    unknown[10:12, 10:13] = True  # 6 cells: too large for 5
+    unknown[0, 15] = True  # on the edge: the rest of it may lie beyond
+    specks = unknown_specks(unknown, max_cells=5)
+    assert specks[5, 5]
+    assert specks.sum() == 1
+    assert unknown_specks(unknown, max_cells=6)[10:12, 10:13].all()
+    assert not unknown_specks(np.zeros((4, 4), bool), max_cells=5).any()
+
+
 def test_misfit_tolerance_grows_only_where_local_walls_sit_off() -> None:
     from mapserver.diff import misfit_tolerance
 
