@@ -103,8 +103,9 @@ class DiffConfig(_Frozen):
     mapping rays missed, or a pole they hit now and then), hides the local walls within
     ``tolerance_m`` of it, never the misfit's wider tolerance: that one is for walls seen
     displaced, and a speck within 0.5 m of a new box hid the whole box (a site history on a 0.10
-    m map: one box seen in 13 sessions was found in none; session 51). 0: every unknown patch
-    takes the misfit's tolerance."""
+    m map: one box seen in 13 sessions was found in none; session 51). A speck drawn as a grey
+    wall (the structure mask's) is a wall. 0: every unknown patch takes the misfit's
+    tolerance."""
     along_wall_m: float = Field(0.35, ge=0)
     """An added obstacle that never gets further than this from a global wall, and lies all
     on one side of it, is that wall seen displaced (drift left over, a face seen thicker), not

@@ -187,20 +187,20 @@ def raw_differences(
     g_state, l_state, roi = global_state[box], local_state[box], roi[box]
     g_occ = g_state == OCCUPIED
     l_occ = l_state == OCCUPIED
-    g_walls = g_occ if global_walls is None else (g_occ | global_walls[box])
-    if unknown_is_wall:
-        g_walls = g_walls | (g_state == UNKNOWN)
+    g_drawn = g_occ if global_walls is None else (g_occ | global_walls[box])
+    g_walls = g_drawn | (g_state == UNKNOWN) if unknown_is_wall else g_drawn
     # ``distance_to(walls) > tol`` as a dilation by the offsets that are not beyond tol (same
     # cells, a fraction of the cost).
     added = l_occ & (g_state == FREE) & roi
     if added.any() and g_walls.any():
         added &= ~within(g_walls, tol_px)
         if extra_tolerance_m is not None and added.any():
-            # The walls the misfit's extra tolerance reaches from: all but the unknown specks.
+            # The walls the misfit's extra tolerance reaches from: all but the unknown specks
+            # (a speck drawn as a grey wall is a wall).
             far_walls = g_walls
             if unknown_is_wall and speck_m2 > 0:
                 max_cells = max(1, math.floor(speck_m2 / resolution**2))
-                far_walls = g_walls & ~unknown_specks(g_state == UNKNOWN, max_cells)
+                far_walls = g_drawn | (g_walls & ~unknown_specks(g_state == UNKNOWN, max_cells))
             _keep_far(added, far_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():

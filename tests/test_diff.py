@@ -364,6 +364,25 @@ def test_an_unknown_speck_hides_a_new_box_only_within_the_plain_tolerance() -> N
     assert not raw_differences(g, loc, roi, speck_m2=0.05, **args).added.any()
 
 
+def test_a_speck_drawn_as_a_grey_wall_keeps_the_misfit_tolerance() -> None:
+    """A pole the global map draws in dark grey (unknown to the trinary reading, a wall to the
+    structure mask) is a drawn wall: what drift shows displaced around it stays hidden."""
+    g, loc, roi, extra = _speck_scene()
+    grey_walls = np.zeros(g.shape, bool)
+    grey_walls[30, 30] = True
+    d = raw_differences(
+        g,
+        loc,
+        roi,
+        resolution=0.1,
+        tolerance_m=0.15,
+        extra_tolerance_m=extra,
+        speck_m2=0.05,
+        global_walls=grey_walls,
+    )
+    assert not d.added.any()
+
+
 def test_a_wall_on_an_unknown_speck_is_the_speck_s_object_not_added() -> None:
     g, loc, roi, extra = _speck_scene()
     loc[29:32, 31:34] = FREE
