@@ -61,6 +61,18 @@ class GlobalView:
             cache[tolerance_m] = near(self.structure, self._within(tolerance_m))
         return cache[tolerance_m]
 
+    def near_edges(self, tolerance_m: float) -> NDArray[np.bool_]:
+        """Cells within ``tolerance_m`` of the edge of what the global map knows: an unknown
+        cell beside (4-connected) a free one, where a map that does not draw a wall dark ends
+        its floor. Cached per tolerance."""
+        cache: dict[float, NDArray[np.bool_]] = self.__dict__.setdefault("_edges", {})
+        if tolerance_m not in cache:
+            cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+            beside_free = cv2.dilate((self.state == FREE).view(np.uint8), cross) > 0
+            edge = (self.state == UNKNOWN) & beside_free
+            cache[tolerance_m] = near(edge, self._within(tolerance_m))
+        return cache[tolerance_m]
+
     def near_walls_at(self, points_xy: FloatArray, distance_m: float) -> NDArray[np.bool_]:
         """(N,) bool: whether each of ``points_xy`` (nav2 metres) lies within ``distance_m``
         of a global wall, as ``near_walls(distance_m)`` sampled there (False off the grid),
@@ -1117,6 +1129,7 @@ def align(
     pivot_slam: tuple[float, float] | None = None,
     widen: Callable[[], GlobalView] | None = None,
     prior_confirmed: Callable[[Transform2D], bool] | None = None,
+    edge_margin: float = 0.0,
 ) -> Alignment:
     """Refine ``prior`` (nav2_from_slam) by matching the local map's walls to the global map's.
 
@@ -1140,6 +1153,12 @@ def align(
     map aligned on its own put the robot where the prior does: the map is bent, the prior is
     not off), and the wide search is skipped.
 
+    A transform scoring under ``min_score`` by at most ``edge_margin`` is trusted when its score
+    with the edges of what the global map knows counted as walls (:meth:`GlobalView.near_edges`)
+    reaches ``min_score``: a map that ends its floor where a wall stands without drawing the
+    wall dark. Near the bar only: edges are everywhere in such a map, and far under it they
+    would lift a wrong transform too.
+
     A failed alignment is a value, not an exception: ``trusted`` is false and a warning says why.
     """
     walls = known_points(local, state=OCCUPIED)
@@ -1160,6 +1179,13 @@ def align(
         """Trusted, and the unchanged score when that is what trusts it."""
         if s >= min_score:
             return True, None
+        if edge_margin > 0 and s >= min_score - edge_margin:
+            on_edges = near_walls | view.near_edges(tolerance_m)
+            p = agreement(walls, t, view.grid, on_edges)
+            with_edges = math.sqrt(p * consistency(local, t, view, tolerance_m=tolerance_m))
+            if with_edges >= min_score:
+                warnings.append(_trusted_on_edges(s, min_score, with_edges))
+                return True, None
         unchanged = unchanged_score(local, walls, t, view, tolerance_m=tolerance_m)
         if unchanged < min_score + UNCHANGED_MARGIN:
             warnings.append(_untrusted(s, min_score))
@@ -1267,6 +1293,14 @@ def _untrusted(score: float, min_score: float) -> str:
     return (
         f"could not align the local map onto the global map (agreement {score:.2f} < "
         f"{min_score:.2f}): no differences reported; check the robot's localisation"
+    )
+
+
+def _trusted_on_edges(score: float, min_score: float, with_edges: float) -> str:
+    return (
+        f"aligned on the edges of what the global map knows: score {score:.2f} < "
+        f"{min_score:.2f} on its drawn walls, {with_edges:.2f} with the edges of its known floor "
+        "taken as walls (a map that ends its floor at a wall without drawing it dark)"
     )
 
 

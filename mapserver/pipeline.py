@@ -632,6 +632,7 @@ def _align(
         jump_m=a.jump_m,
         pivot_slam=pivot,
         prior_confirmed=prior_confirmed if a.pieces else None,
+        edge_margin=a.edge_margin,  # the whole map only: never a piece's few walls
     )
     view = built.get(wide_rad, built[narrow])
     return view, result, pieces[0] if pieces and not result.trusted else None

@@ -157,6 +157,39 @@ def test_mislocalised_beyond_search_is_reported_not_trusted() -> None:
     assert any("could not align" in w for w in result.warnings)
 
 
+def _floor_ends_at_walls(world: OccupancyMap, keep_every: int) -> OccupancyMap:
+    """``world`` as a map that ends its floor at a wall without drawing it dark: its wall
+    cells unknown, but for one 3 x 3 block in ``keep_every`` (willow-2010 draws a few)."""
+    state = world.state.copy()
+    rows, cols = np.nonzero(state == OCCUPIED)
+    undrawn = ((rows // 3 + cols // 3) % keep_every) != 0
+    state[rows[undrawn], cols[undrawn]] = UNKNOWN
+    return from_states(state, world.resolution, world.origin)
+
+
+def test_walls_drawn_as_the_end_of_the_known_floor_trust_a_right_alignment_near_the_bar() -> None:
+    """One wall block in 8 drawn: the right transform scores 0.57 on the drawn walls, and
+    over 0.6 with the edges of the known floor taken as walls; trusted, saying so, only within
+    ``edge_margin`` of the bar. One in 10: 0.49, under the margin, not trusted. A transform
+    0.3 m off is not trusted, whatever the margin."""
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)
+
+    def run(keep_every: int, prior: Transform2D, margin: float):
+        sparse = _floor_ends_at_walls(world, keep_every)
+        view = make_view(sparse, cut.local, prior, search_xy_m=2.5)
+        return align(cut.local, view, prior, refine=False, edge_margin=margin)
+
+    plain = run(8, TRUE, 0.0)
+    assert 0.5 < plain.score < 0.6 and not plain.trusted
+    edges = run(8, TRUE, 0.1)
+    assert edges.trusted and edges.score == plain.score
+    assert any("edges of what the global map knows" in w for w in edges.warnings)
+    assert not run(10, TRUE, 0.1).trusted
+    off = offset(TRUE, 0.3, 0.0, 0.0, CENTRE)
+    assert not run(8, off, 1.0).trusted
+
+
 def test_refine_off_keeps_the_prior() -> None:
     world = office(seed=3)
     cut = cut_local(world, centre_xy=CENTRE, radius_m=8.0, nav2_from_slam=TRUE)

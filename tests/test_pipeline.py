@@ -28,7 +28,7 @@ from worlds import (
 from mapserver import compare, pipeline, synth
 from mapserver import diff as diff_stage
 from mapserver.align import make_view
-from mapserver.config import Config, DiffConfig, PipelineConfig, RoiConfig
+from mapserver.config import AlignConfig, Config, DiffConfig, PipelineConfig, RoiConfig
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
@@ -676,6 +676,30 @@ def test_the_drift_estimate_works_on_the_mean_of_each_block_of_wall_points(
     assert drift.max_shift_m() < 0.05  # the true transform: next to nothing to correct
     assert calls[0] == (2 * view.grid.resolution, True)
     assert len(calls) >= 2 and not any(mean for _, mean in calls[1:])
+
+
+def test_a_map_whose_floor_ends_at_undrawn_walls_is_compared(tmp_path: Path) -> None:
+    """A global map that draws one wall block in 8 dark and leaves the rest unknown beyond its
+    floor (as willow-2010 does): the right alignment scores 0.57 on the drawn walls; trusted on
+    the edges of the known floor (``align.edge_margin``), nothing reported (the local walls
+    stand at the end of the known floor), and with no margin not trusted, as before."""
+    truth = Transform2D(0.7, 5.0, -3.0)
+    world = office(seed=3)
+    cut = cut_local(world, centre_xy=(12.0, 6.0), radius_m=8.0, nav2_from_slam=truth)
+    state = world.state.copy()
+    rows, cols = np.nonzero(state == OCCUPIED)
+    undrawn = (rows // 3 + cols // 3) % 8 != 0
+    state[rows[undrawn], cols[undrawn]] = UNKNOWN
+    sparse = from_states(state, world.resolution, world.origin)
+    prior = offset(truth, 0.3, -0.2, 2.5, (12.0, 6.0))
+    bundle = write_bundle(tmp_path / "floor-ends", sparse, cut, prior=prior)
+    r = process_bundle(bundle, Config()).result
+    assert r["alignment"]["trusted"] and 0.5 < r["alignment"]["score"] < 0.6
+    assert r["alignment"]["theta"] == pytest.approx(truth.theta, abs=0.005)
+    assert any("edges of what the global map knows" in w for w in r["warnings"])
+    assert r["differences"] == []
+    off = Config(pipeline=PipelineConfig(align=AlignConfig(edge_margin=0.0)))
+    assert not process_bundle(bundle, off).result["alignment"]["trusted"]
 
 
 def test_a_hall_trusted_on_what_did_not_change_says_so_in_its_result(tmp_path: Path) -> None:
