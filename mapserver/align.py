@@ -151,7 +151,8 @@ class Alignment:
     see through; ``prior_score`` is the same for the pose prior. ``trusted`` is false when even the
     best transform agrees too little to compare the maps. ``unchanged_score``: set when the
     transform was trusted on the structure that did not change although ``score`` is under the
-    minimum (see :func:`unchanged_score`).
+    minimum (see :func:`unchanged_score`); ``edges_score``: set when it was trusted with the
+    edges of what the global map knows counted as walls (``edge_margin`` of :func:`align`).
     """
 
     nav2_from_slam: Transform2D
@@ -162,6 +163,7 @@ class Alignment:
     trusted: bool
     warnings: tuple[str, ...] = field(default=())
     unchanged_score: float | None = None
+    edges_score: float | None = None
 
 
 def structure_mask(m: OccupancyMap) -> NDArray[np.bool_]:
@@ -1175,32 +1177,41 @@ def align(
 
     prior_score = score(prior)
 
-    def trust(t: Transform2D, s: float) -> tuple[bool, float | None]:
-        """Trusted, and the unchanged score when that is what trusts it."""
+    def trust(t: Transform2D, s: float) -> tuple[bool, float | None, float | None]:
+        """Trusted, and the unchanged score or the score with the known floor's edges when
+        that is what trusts it."""
         if s >= min_score:
-            return True, None
+            return True, None, None
         if edge_margin > 0 and s >= min_score - edge_margin:
             on_edges = near_walls | view.near_edges(tolerance_m)
             p = agreement(walls, t, view.grid, on_edges)
             with_edges = math.sqrt(p * consistency(local, t, view, tolerance_m=tolerance_m))
             if with_edges >= min_score:
                 warnings.append(_trusted_on_edges(s, min_score, with_edges))
-                return True, None
+                return True, None, with_edges
         unchanged = unchanged_score(local, walls, t, view, tolerance_m=tolerance_m)
         if unchanged < min_score + UNCHANGED_MARGIN:
             warnings.append(_untrusted(s, min_score))
-            return False, None
+            return False, None, None
         warnings.append(_trusted_unchanged(s, min_score, unchanged))
-        return True, unchanged
+        return True, unchanged, None
 
     def keep_prior(reason: str | None) -> Alignment:
         if reason:
             warnings.append(reason)
-            trusted, unchanged = False, None
+            trusted, unchanged, edges = False, None, None
         else:
-            trusted, unchanged = trust(prior, prior_score)
+            trusted, unchanged, edges = trust(prior, prior_score)
         return Alignment(
-            prior, "pose", False, prior_score, prior_score, trusted, tuple(warnings), unchanged
+            prior,
+            "pose",
+            False,
+            prior_score,
+            prior_score,
+            trusted,
+            tuple(warnings),
+            unchanged_score=unchanged,
+            edges_score=edges,
         )
 
     if len(walls) < 20 or not view.structure.any():
@@ -1276,7 +1287,7 @@ def align(
     jump = _distance(chosen, prior, centre, radius) > jump_m
     if chosen_score < prior_score + (min_gain if jump else 1e-6):
         return keep_prior(None)
-    trusted, unchanged = trust(chosen, chosen_score)
+    trusted, unchanged, edges = trust(chosen, chosen_score)
     return Alignment(
         chosen,
         "pose+correlative+icp",
@@ -1285,7 +1296,8 @@ def align(
         prior_score,
         trusted,
         tuple(warnings),
-        unchanged,
+        unchanged_score=unchanged,
+        edges_score=edges,
     )
 
 

@@ -899,6 +899,9 @@ def _alignment_doc(
     if alignment.unchanged_score is not None and not aligned.in_pieces:
         # Trusted under min_score: on the structure that did not change (align.unchanged_score).
         doc["unchanged_score"] = round(alignment.unchanged_score, 3)
+    if alignment.edges_score is not None and not aligned.in_pieces:
+        # Trusted under min_score: with the edges of the known floor as walls (edge_margin).
+        doc["edges_score"] = round(alignment.edges_score, 3)
     if pieces is not None:
         doc["method"] = f"{alignment.method}+pieces"
         doc["trusted_area_m2"] = round(pieces.trusted_area_m2 * kept, 1)

@@ -184,6 +184,8 @@ def test_walls_drawn_as_the_end_of_the_known_floor_trust_a_right_alignment_near_
     assert 0.5 < plain.score < 0.6 and not plain.trusted
     edges = run(8, TRUE, 0.1)
     assert edges.trusted and edges.score == plain.score
+    assert edges.edges_score is not None and edges.edges_score >= 0.6
+    assert plain.edges_score is None and edges.unchanged_score is None
     assert any("edges of what the global map knows" in w for w in edges.warnings)
     assert not run(10, TRUE, 0.1).trusted
     off = offset(TRUE, 0.3, 0.0, 0.0, CENTRE)

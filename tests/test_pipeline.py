@@ -695,6 +695,7 @@ def test_a_map_whose_floor_ends_at_undrawn_walls_is_compared(tmp_path: Path) -> 
     bundle = write_bundle(tmp_path / "floor-ends", sparse, cut, prior=prior)
     r = process_bundle(bundle, Config()).result
     assert r["alignment"]["trusted"] and 0.5 < r["alignment"]["score"] < 0.6
+    assert r["alignment"]["edges_score"] >= r["alignment"]["min_score"]
     assert r["alignment"]["theta"] == pytest.approx(truth.theta, abs=0.005)
     assert any("edges of what the global map knows" in w for w in r["warnings"])
     assert r["differences"] == []
