@@ -187,8 +187,9 @@ def raw_differences(
     g_state, l_state, roi = global_state[box], local_state[box], roi[box]
     g_occ = g_state == OCCUPIED
     l_occ = l_state == OCCUPIED
+    g_unknown = g_state == UNKNOWN
     g_drawn = g_occ if global_walls is None else (g_occ | global_walls[box])
-    g_walls = g_drawn | (g_state == UNKNOWN) if unknown_is_wall else g_drawn
+    g_walls = g_drawn | g_unknown if unknown_is_wall else g_drawn
     # ``distance_to(walls) > tol`` as a dilation by the offsets that are not beyond tol (same
     # cells, a fraction of the cost).
     added = l_occ & (g_state == FREE) & roi
@@ -200,7 +201,7 @@ def raw_differences(
             far_walls = g_walls
             if unknown_is_wall and speck_m2 > 0:
                 max_cells = max(1, math.floor(speck_m2 / resolution**2))
-                far_walls = g_drawn | (g_walls & ~unknown_specks(g_state == UNKNOWN, max_cells))
+                far_walls = g_drawn | (g_unknown & ~unknown_specks(g_unknown, max_cells))
             _keep_far(added, far_walls, tolerance_m + extra_tolerance_m[box], resolution)
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
@@ -232,16 +233,8 @@ def unknown_specks(unknown: BoolArray, max_cells: int) -> BoolArray:
     """The patches of ``unknown`` (8-connected) of at most ``max_cells`` cells that do not touch
     the array's edge (a patch cut by it may be larger): specks the mapping rays missed in the
     open, or a pole they hit now and then. (H, W) bool."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros(unknown.shape, bool)
-    h, w = unknown.shape
-    left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    right, bottom = left + stats[:, cv2.CC_STAT_WIDTH], top + stats[:, cv2.CC_STAT_HEIGHT]
-    small = (stats[:, cv2.CC_STAT_AREA] <= max_cells) & (left > 0) & (top > 0)
-    small &= (right < w) & (bottom < h)
-    small[0] = False  # the background
-    return np.asarray(small[labels])
+    labels, stats, clear = _components_clear_of_edge(unknown)
+    return np.asarray((clear & (stats[:, cv2.CC_STAT_AREA] <= max_cells))[labels])
 
 
 def _near_face(
@@ -1687,13 +1680,24 @@ def _small_components(
     """``mask``'s components (8-connected): their labels, OpenCV's stats, and per label
     whether it is no wider than ``max_px`` either way and clear of the array's edge (one
     through it may be wider than it shows); the background (label 0) is not."""
+    labels, stats, clear = _components_clear_of_edge(mask)
+    width, height = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    return labels, stats, clear & (width <= max_px) & (height <= max_px)
+
+
+def _components_clear_of_edge(
+    mask: BoolArray,
+) -> tuple[NDArray[np.int32], NDArray[np.int32], BoolArray]:
+    """``mask``'s components (8-connected): their labels, OpenCV's stats, and per label
+    whether it stays clear of the array's edge (one through it may go on beyond); the
+    background (label 0) does not."""
     _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
     left, top = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
     width, height = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
-    small = (width <= max_px) & (height <= max_px) & (left > 0) & (top > 0)
-    small &= (left + width < labels.shape[1]) & (top + height < labels.shape[0])
-    small[0] = False
-    return np.asarray(labels, np.int32), np.asarray(stats, np.int32), small
+    clear = (left > 0) & (top > 0)
+    clear &= (left + width < labels.shape[1]) & (top + height < labels.shape[0])
+    clear[0] = False
+    return np.asarray(labels, np.int32), np.asarray(stats, np.int32), clear
 
 
 __all__ = [
