@@ -23,7 +23,14 @@ from numpy.typing import NDArray
 
 from mapserver.diff import distance_to, near, near_at, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
-from mapserver.grid import Grid, box_around, landing_box, nonzero_cells, resample
+from mapserver.grid import (
+    Grid,
+    box_around,
+    box_of_cells,
+    landing_box,
+    nonzero_cells,
+    resample,
+)
 from mapserver.maps import FREE, OCCUPIED, PGM_UNKNOWN, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -61,17 +68,26 @@ class GlobalView:
             cache[tolerance_m] = near(self.structure, self._within(tolerance_m))
         return cache[tolerance_m]
 
-    def near_edges(self, tolerance_m: float) -> NDArray[np.bool_]:
-        """Cells within ``tolerance_m`` of the edge of what the global map knows: an unknown
-        cell beside (4-connected) a free one, where a map that does not draw a wall dark ends
-        its floor. Cached per tolerance."""
-        cache: dict[float, NDArray[np.bool_]] = self.__dict__.setdefault("_edges", {})
-        if tolerance_m not in cache:
-            cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-            beside_free = cv2.dilate((self.state == FREE).view(np.uint8), cross) > 0
-            edge = (self.state == UNKNOWN) & beside_free
-            cache[tolerance_m] = near(edge, self._within(tolerance_m))
-        return cache[tolerance_m]
+    def near_edges_at(self, points_xy: FloatArray, distance_m: float) -> NDArray[np.bool_]:
+        """(N,) bool: whether each of ``points_xy`` (nav2 metres) lies within ``distance_m`` of
+        the edge of what the global map knows, an unknown cell beside (4-connected) a free one,
+        where a map that does not draw a wall dark ends its floor; False off the grid. Worked
+        out over the box around the points only: asked once, for a score near the trust bar."""
+        px = np.rint(self.grid.to_pixel(points_xy)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < self.grid.width)
+        inside &= (px[:, 1] >= 0) & (px[:, 1] < self.grid.height)
+        out = np.zeros(len(px), bool)
+        if not inside.any():
+            return out
+        offsets = self._within(distance_m)
+        cols, rows = px[inside, 0], px[inside, 1]
+        # The reach and a cell more: the free neighbour of an edge cell within reach is in it.
+        box = box_of_cells(rows, cols, offsets.shape[0] // 2 + 1, self.state.shape)
+        state = self.state[box]
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        edge = (state == UNKNOWN) & (cv2.dilate((state == FREE).view(np.uint8), cross) > 0)
+        out[inside] = near(edge, offsets)[rows - box[0].start, cols - box[1].start]
+        return out
 
     def near_walls_at(self, points_xy: FloatArray, distance_m: float) -> NDArray[np.bool_]:
         """(N,) bool: whether each of ``points_xy`` (nav2 metres) lies within ``distance_m``
@@ -1156,7 +1172,7 @@ def align(
     not off), and the wide search is skipped.
 
     A transform scoring under ``min_score`` by at most ``edge_margin`` is trusted when its score
-    with the edges of what the global map knows counted as walls (:meth:`GlobalView.near_edges`)
+    with the edges of what the global map knows counted as walls (:meth:`GlobalView.near_edges_at`)
     reaches ``min_score``: a map that ends its floor where a wall stands without drawing the
     wall dark. Near the bar only: edges are everywhere in such a map, and far under it they
     would lift a wrong transform too.
@@ -1183,8 +1199,9 @@ def align(
         if s >= min_score:
             return True, None, None
         if edge_margin > 0 and s >= min_score - edge_margin:
-            on_edges = near_walls | view.near_edges(tolerance_m)
-            p = agreement(walls, t, view.grid, on_edges)
+            at = t.apply(walls)
+            on = view.grid.sample(near_walls, at, False) | view.near_edges_at(at, tolerance_m)
+            p = float(np.mean(on))
             with_edges = math.sqrt(p * consistency(local, t, view, tolerance_m=tolerance_m))
             if with_edges >= min_score:
                 warnings.append(_trusted_on_edges(s, min_score, with_edges))
