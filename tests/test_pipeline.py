@@ -6,6 +6,7 @@ import hashlib
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,7 +33,7 @@ from mapserver.config import AlignConfig, Config, DiffConfig, PipelineConfig, Ro
 from mapserver.errors import BundleError, MapFileError
 from mapserver.geometry import Transform2D
 from mapserver.grid import Grid
-from mapserver.maps import FREE, OCCUPIED, UNKNOWN, from_states
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap, from_states
 from mapserver.pipeline import process_bundle
 from mapserver.scoring import parse_result, parse_truth, score_bundle
 
@@ -437,6 +438,22 @@ def test_what_stays_of_a_gap_cut_through_a_partition_is_reported(
         assert [d.kind for d in found] == kinds
 
 
+def _compared(
+    g: np.ndarray,
+    seen: np.ndarray,
+    grid: Grid,
+    local: OccupancyMap,
+    config: Config | None = None,
+    **kwargs: Any,
+) -> tuple[diff_stage.DiffMasks, np.ndarray]:
+    """``compare.masks`` of the local states ``seen`` against the global states ``g`` on
+    ``grid`` (the global map's own grid): its occupied cells the walls, the whole grid
+    compared."""
+    global_map = from_states(g, grid.resolution, (grid.x0, grid.y0, 0.0))
+    walls, roi = g == OCCUPIED, np.ones(g.shape, bool)
+    return compare.masks(g, walls, seen, roi, grid, config or Config(), local, global_map, **kwargs)
+
+
 def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -455,19 +472,8 @@ def test_the_end_of_a_thin_wall_seen_free_is_reported_on_a_coarse_local_map(
     seen[50:52, :40] = OCCUPIED  # drawn whole where it stands
     seen[50:52, 40:60] = FREE
     local = from_states(np.full((50, 50), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
-    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
     config = Config()
-    masks, evidence = compare.masks(
-        g,
-        g == OCCUPIED,
-        seen,
-        np.ones(g.shape, bool),
-        grid,
-        config,
-        local,
-        global_map,
-        drifted=True,
-    )
+    masks, evidence = _compared(g, seen, grid, local, config, drifted=True)
     assert masks.removed.sum() == 16 < config.pipeline.diff.min_removed_cells * 4
 
     def kinds() -> list[str]:
@@ -497,21 +503,9 @@ def test_a_new_box_beside_an_unknown_speck_is_found_where_drift_widened_the_tole
     seen[23, :] = OCCUPIED  # the wall, 0.3 m off
     seen[32:35, 31:34] = OCCUPIED  # the box, its face a cell from the speck
     local = from_states(np.full((n, n), FREE, np.uint8), 0.1, (0.0, 0.0, 0.0))
-    global_map = from_states(g, 0.1, (0.0, 0.0, 0.0))
 
     def added(config: Config) -> np.ndarray:
-        masks, _ = compare.masks(
-            g,
-            g == OCCUPIED,
-            seen,
-            np.ones(g.shape, bool),
-            grid,
-            config,
-            local,
-            global_map,
-            drifted=True,
-        )
-        return masks.added
+        return _compared(g, seen, grid, local, config, drifted=True)[0].added
 
     found = added(Config())
     assert found[32:35, 32:34].all()
@@ -542,13 +536,9 @@ def test_wall_ends_keep_the_wider_tolerance_after_a_drifting_session() -> None:
     g, loc = doorway_cut()
     grid = Grid(0.0, 0.0, 0.05, 100, 100)
     local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
-    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
-    roi = np.ones(g.shape, bool)
 
     def removed_rows(drifted: bool) -> set[int]:
-        masks, _ = compare.masks(
-            g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, drifted=drifted
-        )
+        masks, _ = _compared(g, loc, grid, local, drifted=drifted)
         return {int(r) for r in np.nonzero(masks.removed)[0]}
 
     assert removed_rows(False) == set(range(42, 48))
@@ -565,13 +555,9 @@ def test_the_comparison_asks_removals_the_depth_of_the_robots_longest_rays() -> 
     loc[:46, :] = FREE
     grid = Grid(0.0, 0.0, 0.05, 100, 80)
     local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
-    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
-    roi = np.ones(g.shape, bool)
 
     def masks_with(reach_m: float) -> tuple[diff_stage.DiffMasks, np.ndarray]:
-        return compare.masks(
-            g, g == OCCUPIED, loc, roi, grid, Config(), local, global_map, reach_m=lambda: reach_m
-        )
+        return _compared(g, loc, grid, local, reach_m=lambda: reach_m)
 
     near_masks, near = masks_with(8.0)
     far_masks, far = masks_with(30.0)
@@ -592,22 +578,13 @@ def test_the_comparison_asks_a_wall_seen_through_to_lie_inside_it_across_the_ray
     loc = np.full(g.shape, FREE, np.uint8)
     grid = Grid(0.0, 0.0, 0.05, 100, 800)
     local = from_states(loc, 0.05, (0.0, 0.0, 0.0))
-    global_map = from_states(g, 0.05, (0.0, 0.0, 0.0))
     route_xy = grid.to_world(np.array([[50.0, row] for row in range(785, 800)]))
 
     def evidence(xy: np.ndarray | None) -> np.ndarray:
-        return compare.masks(
-            g,
-            g == OCCUPIED,
-            loc,
-            np.ones(g.shape, bool),
-            grid,
-            Config(),
-            local,
-            global_map,
-            route=lambda: pipeline._route_on(grid, xy),
-            reach_m=lambda: 12.0,
-        )[1]
+        masks = _compared(
+            g, loc, grid, local, route=lambda: pipeline._route_on(grid, xy), reach_m=lambda: 12.0
+        )
+        return masks[1]
 
     along = evidence(route_xy)
     assert along[525:780, 49:52].all()
