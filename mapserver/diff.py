@@ -174,8 +174,6 @@ def raw_differences(
         )
     removed_tol_m = tolerance_m if removed_tolerance_m is None else removed_tolerance_m
     tol_px, removed_tol_px = tolerance_m / resolution, removed_tol_m / resolution
-    added_full = np.zeros(roi.shape, bool)
-    removed_full = np.zeros(roi.shape, bool)
     # Only the ROI's bounding box can differ, and only walls within the tolerances of it count
     # (the widest, with the misfit's extra): work on that box plus their reach (the same cells,
     # less area).
@@ -183,7 +181,8 @@ def raw_differences(
     reach = offset_distances(max(tol_px, removed_tol_px) + extra_m / resolution).shape[0] // 2
     box = box_around(roi, reach)
     if box is None:
-        return DiffMasks(added_full, removed_full)
+        return DiffMasks(np.zeros(roi.shape, bool), np.zeros(roi.shape, bool))
+    shape = roi.shape
     g_state, l_state, roi = global_state[box], local_state[box], roi[box]
     g_occ = g_state == OCCUPIED
     l_occ = l_state == OCCUPIED
@@ -203,6 +202,10 @@ def raw_differences(
                 max_cells = max(1, math.floor(speck_m2 / resolution**2))
                 far_walls = g_drawn | (g_unknown & ~unknown_specks(g_unknown, max_cells))
             _keep_far(added, far_walls, tolerance_m + extra_tolerance_m[box], resolution)
+            del far_walls
+    # The removed cells need none of the added ones' masks: each is a box-sized bool array, and
+    # this function's temporaries are the pipeline's peak of memory (benchmarks/bench_speed.py).
+    del g_unknown, g_drawn, g_walls
     removed = g_occ & (l_state == FREE) & roi
     if removed.any() and l_occ.any():
         seen = removed.copy()
@@ -214,10 +217,12 @@ def raw_differences(
         removed &= ~within(faces, removed_tol_px)
         if extra_tolerance_m is not None:
             _keep_far(removed, faces, removed_tol_m + extra_tolerance_m[box], resolution)
+        del faces
         # The removed tolerance is for a wall seen off to one side of where it was drawn. Past
         # the end of a local wall, in line with it (a gap in a wall), a smaller one will do.
         end_px = (removed_tol_m if end_tolerance_m is None else end_tolerance_m) / resolution
         ends = seen & ~removed & ~within(l_occ, end_px)
+        del seen
         if extra_tolerance_m is not None:  # only where the walls fit: no drift left there
             ends &= extra_tolerance_m[box] == 0
         if ends.any():
@@ -225,7 +230,11 @@ def raw_differences(
             # A wall's end: a wall seen over at least 0.3 m.
             run = max(2, round(0.3 / resolution))
             removed |= _past_wall_ends(ends, l_occ, g_occ, pad=reach_px, min_run=run)
-    added_full[box], removed_full[box] = added, removed
+    added_full = np.zeros(shape, bool)
+    added_full[box] = added
+    del added
+    removed_full = np.zeros(shape, bool)
+    removed_full[box] = removed
     return DiffMasks(added_full, removed_full)
 
 
