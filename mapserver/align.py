@@ -21,12 +21,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mapserver.diff import distance_to, near, near_at, offset_distances
+from mapserver.diff import distance_to, near, near_at, near_at_box, offset_distances
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.grid import (
     Grid,
     box_around,
-    box_of_cells,
     landing_box,
     nonzero_cells,
     resample,
@@ -73,21 +72,15 @@ class GlobalView:
         the edge of what the global map knows, an unknown cell beside (4-connected) a free one,
         where a map that does not draw a wall dark ends its floor; False off the grid. Worked
         out over the box around the points only: asked once, for a score near the trust bar."""
-        px = np.rint(self.grid.to_pixel(points_xy)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < self.grid.width)
-        inside &= (px[:, 1] >= 0) & (px[:, 1] < self.grid.height)
-        out = np.zeros(len(px), bool)
-        if not inside.any():
-            return out
-        offsets = self._within(distance_m)
-        cols, rows = px[inside, 0], px[inside, 1]
-        # The reach and a cell more: the free neighbour of an edge cell within reach is in it.
-        box = box_of_cells(rows, cols, offsets.shape[0] // 2 + 1, self.state.shape)
-        state = self.state[box]
         cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-        edge = (state == UNKNOWN) & (cv2.dilate((state == FREE).view(np.uint8), cross) > 0)
-        out[inside] = near(edge, offsets)[rows - box[0].start, cols - box[1].start]
-        return out
+
+        def edges(box: tuple[slice, slice]) -> NDArray[np.bool_]:
+            state = self.state[box]
+            free = cv2.dilate((state == FREE).view(np.uint8), cross) > 0
+            return np.asarray((state == UNKNOWN) & free)
+
+        # A cell more than the reach: the free neighbour of an edge cell within reach is in it.
+        return near_at_box(edges, self._within(distance_m), self.grid, points_xy, pad=1)
 
     def near_walls_at(self, points_xy: FloatArray, distance_m: float) -> NDArray[np.bool_]:
         """(N,) bool: whether each of ``points_xy`` (nav2 metres) lies within ``distance_m``
@@ -1201,8 +1194,7 @@ def align(
         if edge_margin > 0 and s >= min_score - edge_margin:
             at = t.apply(walls)
             on = view.grid.sample(near_walls, at, False) | view.near_edges_at(at, tolerance_m)
-            p = float(np.mean(on))
-            with_edges = math.sqrt(p * consistency(local, t, view, tolerance_m=tolerance_m))
+            with_edges = score(t, float(np.mean(on)))
             if with_edges >= min_score:
                 warnings.append(_trusted_on_edges(s, min_score, with_edges))
                 return True, None, with_edges

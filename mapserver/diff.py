@@ -9,7 +9,7 @@ A wall seen within ``tolerance_m`` of where the other map has one is misalignmen
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -105,6 +105,20 @@ def near_at(
     ``mask`` at one of ``offsets`` from it, False off the grid; worked out over the box around
     the points only, not a pass over the whole mask (a check that asks at a few places of a
     map hundreds of metres across)."""
+    return near_at_box(lambda box: mask[box], offsets, grid, points_xy)
+
+
+def near_at_box(
+    mask_in: Callable[[tuple[slice, slice]], BoolArray],
+    offsets: BoolArray,
+    grid: Grid,
+    points_xy: NDArray[np.float64],
+    *,
+    pad: int = 0,
+) -> BoolArray:
+    """:func:`near_at` of a mask made only over the box it needs: ``mask_in(box)`` returns the
+    mask on ``box`` of ``grid``, the box around the points with the offsets' reach and ``pad``
+    cells more (room for a mask that looks at a cell's neighbours)."""
     px = np.rint(grid.to_pixel(points_xy)).astype(np.int64)
     inside = (px[:, 0] >= 0) & (px[:, 0] < grid.width)
     inside &= (px[:, 1] >= 0) & (px[:, 1] < grid.height)
@@ -112,8 +126,8 @@ def near_at(
     if not inside.any():
         return out
     cols, rows = px[inside, 0], px[inside, 1]
-    box = box_of_cells(rows, cols, offsets.shape[0] // 2, mask.shape)
-    part = near(mask[box], offsets)
+    box = box_of_cells(rows, cols, offsets.shape[0] // 2 + pad, (grid.height, grid.width))
+    part = near(mask_in(box), offsets)
     out[inside] = part[rows - box[0].start, cols - box[1].start]
     return out
 
