@@ -10,7 +10,7 @@ import hashlib
 import math
 import re
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated
 
@@ -33,7 +33,7 @@ from mapserver.errors import (
     describe_validation,
     no_such_path,
 )
-from mapserver.geometry import Pose2D, Transform2D, yaw_from_quaternion
+from mapserver.geometry import MAX_COORDINATE_M, Pose2D, Transform2D, yaw_from_quaternion
 from mapserver.maps import MAX_MAP_YAML_BYTES
 
 MANIFEST = "bundle.yaml"
@@ -103,6 +103,11 @@ class PoseModel(_Model):
             values += [o.x, o.y, o.z, o.w]
         if not all(math.isfinite(v) for v in values):
             raise ValueError("pose values must be finite numbers (no NaN or inf)")
+        if max(abs(self.x), abs(self.y)) > MAX_COORDINATE_M:
+            raise ValueError(
+                f"pose x and y must lie within {MAX_COORDINATE_M:.0e} m of the frame's origin, "
+                f"got ({self.x:g}, {self.y:g})"
+            )
         return self
 
     def to_pose(self) -> Pose2D:
@@ -166,6 +171,11 @@ class Manifest(_Model):
             ) from None
         if parsed.tzinfo is None:
             raise ValueError(f"{value!r} has no time zone (write it like 2026-11-21T10:15:00Z)")
+        try:
+            parsed.astimezone(timezone.utc).timestamp()
+        except (OverflowError, ValueError):
+            # 0001-01-01T00:30:00+01:00 is a valid text whose UTC time is before year 1.
+            raise ValueError(f"{value!r} lies outside the years 1-9999 in UTC") from None
         return value
 
     def nav2_from_slam_prior(self) -> Transform2D:

@@ -102,6 +102,14 @@ def _cmd_process(args: argparse.Namespace) -> int:
                     f"{error.strerror or error}\n"
                 )
                 continue
+            except Exception as error:  # a bug: this bundle fails, the others are processed
+                failures += 1
+                log.exception("%s: internal error", bundle_dir)
+                sys.stderr.write(
+                    f"mapserver: error: {bundle_dir}: internal error ({type(error).__name__}: "
+                    f"{error}); please report this bundle\n"
+                )
+                continue
             differences = outcome.result.get("differences") or []
             note = " (replaced the earlier result)" if replaced else ""
             lines = [

@@ -12,6 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+# The farthest (metres, in x or in y) a map's origin or a pose may lie from its frame's
+# origin: beyond any building, even in UTM coordinates (northings up to 1e7 m). Past it the
+# transforms lose every centimetre to rounding and arrays sized by coordinates overflow.
+MAX_COORDINATE_M = 1e7
+
 
 def wrap_angle(angle_rad: float) -> float:
     """Wrap an angle to [-pi, pi)."""

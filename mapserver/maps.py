@@ -27,6 +27,7 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from mapserver.errors import MapFileError
+from mapserver.geometry import MAX_COORDINATE_M
 
 # Cell states, as stored in OccupancyMap.state (uint8).
 FREE = 0
@@ -400,6 +401,12 @@ def _read_map_yaml(path: Path) -> _MapYaml:
     if not isinstance(origin, (list, tuple)) or len(origin) != 3:
         raise MapFileError(f"'origin' must be [x, y, yaw], got {_show(origin)}", file=path)
     x, y, yaw = (_number(dict(enumerate(origin)), i, path, "origin") for i in range(3))
+    if max(abs(x), abs(y)) > MAX_COORDINATE_M:
+        raise MapFileError(
+            f"'origin' must lie within {MAX_COORDINATE_M:.0e} m of the map frame's origin, "
+            f"got [{x:g}, {y:g}]",
+            file=path,
+        )
     occupied = _number(document, "occupied_thresh", path)
     free = _number(document, "free_thresh", path)
     for key, value in (("occupied_thresh", occupied), ("free_thresh", free)):

@@ -235,7 +235,39 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
         )
     if not (local.state != UNKNOWN).any():
         raise BundleError("the local map has no known cells", file=files.slam_image)
-    return _Inputs(files, local, global_map, _route_slam(files))
+    route = _route_slam(files)
+    manifest = bundle_dir / MANIFEST
+    slam, nav2 = files.manifest.pose.slam, files.manifest.pose.nav2
+    _refuse_far_off(np.array([[slam.x, slam.y]]), "pose.slam", local, "local", extent, manifest)
+    if route is not None:
+        _refuse_far_off(route, "trajectory", local, "local", extent, manifest)
+    _refuse_far_off(
+        np.array([[nav2.x, nav2.y]]), "pose.nav2", global_map, "global", extent, manifest
+    )
+    return _Inputs(files, local, global_map, route)
+
+
+def _refuse_far_off(
+    points: np.ndarray, name: str, on: OccupancyMap, which: str, margin_m: float, manifest: Path
+) -> None:
+    """Refuse a bundle whose ``points`` (N, 2) lie more than ``margin_m`` (the limit on a map's
+    extent) outside the map they belong to: a pose in the wrong frame or a broken value, which
+    would make every array sized by the route's length as long as that distance."""
+    grid = Grid.of_map(on)
+    lo = np.array([grid.x0, grid.y0])
+    hi = lo + grid.resolution * np.array([grid.width, grid.height])
+    off = np.maximum(np.maximum(lo - points, points - hi), 0.0).max(axis=1)
+    far = np.flatnonzero(off > margin_m)
+    if len(far) == 0:
+        return
+    i = int(far[0])
+    what = name if len(points) == 1 else f"{name} pose {i}"
+    raise BundleError(
+        f"{what} at ({points[i, 0]:g}, {points[i, 1]:g}) lies {off[i]:.0f} m outside the {which} "
+        f"map (x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}), more than limits.max_map_extent_m "
+        f"({margin_m:g} m): is it in the {'slam' if which == 'local' else 'nav2'} frame?",
+        file=manifest,
+    )
 
 
 def _route_slam(files: BundleFiles) -> np.ndarray | None:

@@ -430,6 +430,10 @@ YAML_ERRORS = {
         _fields(origin=[0, float("inf"), 0]),
         "'origin'[1] must be a finite number, got inf",
     ),
+    "origin 1e300 m off": (
+        _fields(origin=[1e300, 0, 0]),
+        "'origin' must lie within 1e+07 m of the map frame's origin, got [1e+300, 0]",
+    ),
     "occupied_thresh > 1": (
         _fields(occupied_thresh=1.5),
         "'occupied_thresh' must be between 0 and 1, got 1.5",

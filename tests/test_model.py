@@ -96,6 +96,14 @@ def test_manifest_with_yaw_or_quaternion() -> None:
         ({"pose__slam__x": "left"}, "'pose.slam.x'"),
         ({"pose__nav2__x": float("nan")}, "finite"),
         ({"pose__nav2__yaw": float("inf")}, "finite"),
+        # Finite, yet past any building: transforms overflow and arrays sized by it too.
+        (
+            {"pose__nav2__x": 1e300},
+            "'pose.nav2': Value error, pose x and y must lie within 1e+07 m",
+        ),
+        ({"pose__slam__y": -2e7}, "got (0.8, -2e+07)"),
+        # A valid text whose UTC time falls before year 1.
+        ({"stamp": "0001-01-01T00:30:00+01:00"}, "outside the years 1-9999 in UTC"),
         ({"pose__slam__yaw": None}, "exactly one of 'yaw' and 'orientation'"),
         ({"format": 2}, "unsupported format 2"),
         ({"robot": "bad robot!"}, "'robot'"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -231,6 +232,72 @@ def test_cli_process_broken_bundle_exits_1_with_one_line(tmp_path: Path, bundle:
     assert len(lines) == 1
     assert "bundle.yaml" in lines[0] and "pose.slam" in lines[0] and "finite" in lines[0]
     assert not out.exists() or not any(out.iterdir()), "no partial output"
+
+
+@pytest.mark.parametrize(
+    ("where", "value", "named"),
+    [
+        ("trajectory", 5e6, "trajectory pose 3 at (5e+06, "),
+        ("slam", 2500.0, "pose.slam at (2500, "),
+        ("nav2", -3000.0, "pose.nav2 at (-3000, "),
+    ],
+)
+def test_poses_far_off_their_maps_are_refused_before_any_work(
+    bundle: Path, where: str, value: float, named: str
+) -> None:
+    # A trajectory pose 5,000 km off the local map made the route 5,000 km long: 56 s and
+    # 7.9 GB in the pieces' sampling of it (session 53's review), before any limit looked.
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    if where == "trajectory":
+        manifest["trajectory"][3]["x"] = value
+    else:
+        manifest["pose"][where]["x"] = value
+    manifest.pop("checksums", None)
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+    with pytest.raises(BundleError) as info:
+        process_bundle(bundle, Config())
+    reason = info.value.reason
+    assert reason.startswith(f"{bundle / 'bundle.yaml'}: {named}"), reason
+    which = "global" if where == "nav2" else "local"
+    assert f"outside the {which} map" in reason and "limits.max_map_extent_m (2000 m)" in reason
+    if where == "trajectory":
+        # Off by less than the limit: processed (a pose a little outside its map is odd, not
+        # a reason to refuse what the maps show).
+        manifest["trajectory"][3]["x"] = 1500.0
+        (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+        assert process_bundle(bundle, Config()).result["status"] == "ok"
+
+
+def test_cli_process_reports_an_internal_error_and_goes_on(tmp_path: Path, bundle: Path) -> None:
+    # A bug in one bundle's processing fails that bundle with one line; the next is processed.
+    other = tmp_path / "run-0043"
+    shutil.copytree(bundle, other)
+    out = tmp_path / "out"
+    script = (
+        "import sys\n"
+        "from mapserver import cli, pipeline\n"
+        "real = pipeline.process_bundle\n"
+        "def broken(path, *a, **k):\n"
+        "    if path.name == 'run-0042':\n"
+        "        raise ValueError('Maximum allowed size exceeded')\n"
+        "    return real(path, *a, **k)\n"
+        "pipeline.process_bundle = broken\n"
+        "sys.exit(cli.main(sys.argv[1:]))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script, "process", "--outbox", str(out), str(bundle), str(other)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 1
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("mapserver: error:")]
+    assert errors == [
+        f"mapserver: error: {bundle}: internal error (ValueError: Maximum allowed size "
+        "exceeded); please report this bundle"
+    ]
+    assert "run-0043: 1 differences" in proc.stdout
+    assert (out / "run-0043" / "result.yaml").exists() and not (out / "run-0042").exists()
 
 
 def test_global_map_cache_serves_same_content_and_reloads_changed(tmp_path: Path, world) -> None:
