@@ -260,6 +260,47 @@ def test_a_late_bundle_that_saw_the_spot_free_does_not_expire_a_newer_sighting(
     assert change.state == "pending" and change.contradicted == 1
 
 
+@pytest.mark.parametrize("settings", [REVIEW, AUTO])
+def test_late_bundles_cannot_confirm_what_a_newer_bundle_saw_as_before(
+    tmp_path: Path, hall: Path, settings: UpdateConfig
+) -> None:
+    # Session 53's review: the bundles that saw a structure back came first, the three that
+    # saw it gone (a temporary removal) arrived late, and made a new change that the latest
+    # bundle to observe the area had not shown: confirmed, in auto mode published.
+    store = new_store(tmp_path, hall, settings)
+    robot = Robot()
+    store.apply(robot.observe(30))  # the newest: the hall as the map has it
+    for hours in (0, 8, 16):  # older, arriving last: a span of 16 h, three sessions
+        update = store.apply(wall_seen(robot, hours))
+        assert update.confirmed == () and update.new_version is None
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions) == ("pending", 3)
+    (last_observed,) = store._conn.execute(
+        "SELECT last_observed FROM changes WHERE id = ?", (change.id,)
+    ).fetchone()
+    assert last_observed == "2026-11-22T14:00:00Z"  # the hour of the newest bundle
+    # A bundle newer than that one that shows it: now it is the latest word.
+    assert store.apply(wall_seen(robot, 40)).confirmed == (change.id,)
+
+
+def test_a_robot_clock_weeks_ahead_does_not_expire_every_pending_change(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    real = datetime.now(timezone.utc) - timedelta(hours=2)
+    seen = dataclasses.replace(wall_seen(robot, 0), stamp=real.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    store.apply(seen)
+    # Stamped two months ahead (within the year a replay may be ahead), it did not look at
+    # the wall: its stamp is not "now" for the changes nobody has observed for 30 days.
+    ahead = (real + timedelta(days=60)).strftime("%Y-%m-%dT%H:%M:%SZ")
+    elsewhere = robot.observe(1, view=(slice(0, 240), slice(0, 200)))
+    update = store.apply(dataclasses.replace(elsewhere, stamp=ahead))
+    assert update.expired == ()
+    (change,) = store.changes("hall")
+    assert change.state == "pending"
+
+
 def test_a_missing_database_refuses_with_how_to_recover(tmp_path: Path, hall: Path) -> None:
     new_store(tmp_path, hall).close()
     for name in ("store.db", "store.db-wal", "store.db-shm"):

@@ -11,15 +11,15 @@ import math
 import sqlite3
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.config import UpdateConfig
-from mapserver.fleet import tracker
-from mapserver.fleet.lattice import IntArray, Lattice
+from mapserver.fleet import evidence, tracker
+from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.model import now_utc, utc_stamp
 from mapserver.fleet.observe import Observation
 
@@ -182,8 +182,11 @@ class ChangeTracker:
                 )
                 self._support(c, seen, obs, stamp, lattice)
                 shown.append(c.id)
-        # 3. Pending changes nobody has observed for long expire.
-        limit = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
+        # 3. Pending changes nobody has observed for long expire: long before this bundle, or
+        # before now when it is stamped ahead of this server's clock (a robot's clock weeks
+        # ahead would expire every pending change of the map).
+        now = min(tracker.parse_stamp(stamp), datetime.now(timezone.utc))
+        limit = now - timedelta(days=self.settings.expire_unseen_days)
         cutoff = utc_stamp(limit.isoformat())
         for (cid,) in self._conn.execute(
             "SELECT id FROM changes WHERE map_id = ? AND state = 'pending' AND last_observed < ?",
@@ -331,6 +334,15 @@ class ChangeTracker:
             (map_id, kind, stamp, stamp, stamp, *_shape(cells, lattice), now_utc()),
         )
         cid = int(cur.lastrowid or 0)
+        later = self._observed_after(map_id, lattice, cells, stamp)
+        if later is not None:
+            # A late bundle: one stamped after it already observed these cells (and found no
+            # such change there, or this one would support it). Seen, not the latest to say so:
+            # not confirmed until a bundle newer than that one shows it.
+            self._conn.execute(
+                "UPDATE changes SET latest_shows = 0, last_observed = ? WHERE id = ?",
+                (later, cid),
+            )
         self._conn.executemany(
             "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1)",
             ((cid, int(c)) for c in cells),
@@ -340,6 +352,24 @@ class ChangeTracker:
             (cid, obs.bundle_id, obs.robot, stamp),
         )
         return cid
+
+    def _observed_after(
+        self, map_id: int, lattice: Lattice, cells: IntArray, stamp: str
+    ) -> str | None:
+        """When a bundle stamped in a later hour than ``stamp`` last observed any of ``cells``
+        (the start of that hour: the evidence keeps hours), or None. Bundles are applied as
+        they arrive; the fleet counts them by stamp, and a late one must not be the latest
+        word on what a newer one saw (a daemon's two workers finish out of order, an upload
+        waits a day). Within one hour it cannot tell."""
+        row0, col0, last_row, last_col = _box(cells, lattice, 0)
+        window = Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
+        rows, cols, _ = window.local(lattice, cells)
+        seen = evidence.read_window(self._conn, map_id, window).last_hour[rows, cols]
+        hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
+        latest = int(seen.max()) if len(seen) else 0
+        if latest <= hour:
+            return None
+        return utc_stamp(datetime.fromtimestamp(latest * 3600, timezone.utc).isoformat())
 
     @staticmethod
     def _outdated(
