@@ -426,8 +426,12 @@ def test_two_parts_of_one_wall_merge_into_the_older_change_and_its_id_still_answ
     assert whole.changes == (a,) and whole.created == ()
     (change,) = store.changes("hall")
     assert change.id == a and change.sessions == 3 and store.change(b).id == a
+    with pytest.raises(StoreError, match=rf"^change {b} \(merged into {a}\) is pending, not"):
+        store.approve(b)  # the state is the change's it joined: say which one that is
     rejected = store.reject(b)  # the merged id acts on the change it joined
     assert (rejected.id, rejected.state) == (a, "rejected")
+    with pytest.raises(StoreError, match=rf"^change {b} \(merged into {a}\) is rejected: only"):
+        store.reject(b)
 
 
 def test_a_change_approved_by_another_process_shows_in_the_daemons_next_changes_yaml(

@@ -71,6 +71,11 @@ def _implausible_stamp(stamp: str) -> str | None:
     return None
 
 
+def _named(asked: int, found: int) -> str:
+    """A change as an operator named it, and the one it was merged into when that differs."""
+    return str(asked) if asked == found else f"{asked} (merged into {found})"
+
+
 def lookup(root: Path, image_sha256: str) -> MapLink | None:
     """The stored map one of whose versions has this image (sha256), read-only; None if none.
 
@@ -483,7 +488,8 @@ class FleetStore:
         info = self.change(change_id)
         if info.state != "confirmed":
             raise StoreError(
-                f"change {change_id} is {info.state}, not confirmed: only a confirmed change "
+                f"change {_named(change_id, info.id)} is {info.state}, not confirmed: only a "
+                "confirmed change "
                 "can be approved"
                 + (
                     " (it is still pending: more sessions must see it)"
@@ -515,7 +521,8 @@ class FleetStore:
         info = self.change(change_id)
         if info.state not in ("pending", "confirmed"):
             raise StoreError(
-                f"change {change_id} is {info.state}: only a pending or confirmed change can be rejected"
+                f"change {_named(change_id, info.id)} is {info.state}: only a pending or "
+                "confirmed change can be rejected"
             )
         with transaction(self._conn):
             cur = self._conn.execute(
