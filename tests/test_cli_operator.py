@@ -100,6 +100,14 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert capsys.readouterr().out == f"mapserver {mapserver.__version__}\n"
 
 
+def test_python_dash_m_mapserver_is_the_command() -> None:
+    # Where the environment's scripts are not on the PATH (session 53's review used a wrapper).
+    done = subprocess.run(
+        [sys.executable, "-m", "mapserver", "--version"], capture_output=True, text=True, timeout=60
+    )
+    assert (done.returncode, done.stdout) == (0, f"mapserver {mapserver.__version__}\n")
+
+
 @pytest.mark.parametrize(
     "command", ["run", "status", "process", "check-config", "bundle", "demo", None]
 )
