@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 from pathlib import Path
 
 import pytest
 import yaml
 from fastapi.testclient import TestClient
+from prometheus_client.metrics_core import Metric
 from prometheus_client.parser import text_string_to_metric_families
 
 from mapserver.config import Config
@@ -182,12 +184,14 @@ def test_a_non_loopback_address_without_a_token_is_refused(site: Config) -> None
     assert make_server(local).url == "http://127.0.0.1:8399/"
 
 
+def metric_families(c: TestClient) -> dict[str, Metric]:
+    return {f.name: f for f in text_string_to_metric_families(c.get("/metrics").text)}
+
+
 def test_metrics_count_bundles_changes_and_versions(site: Config) -> None:
-    text = client(site).get("/metrics").text
-    families = {f.name: f for f in text_string_to_metric_families(text)}
-    processed = families["mapserver_bundles_processed"].samples[0].value
-    assert processed == len(DEPOT)
-    failed = {s.labels["stage"]: s.value for s in families["mapserver_bundles_failed"].samples}
+    families = metric_families(client(site))
+    assert families["mapserver_results"].samples[0].value == len(DEPOT)
+    failed = {s.labels["stage"]: s.value for s in families["mapserver_failed_bundles"].samples}
     assert failed == {"bundle": 1}
     states = {
         s.labels["state"]: s.value
@@ -195,10 +199,61 @@ def test_metrics_count_bundles_changes_and_versions(site: Config) -> None:
         if s.labels["map"] == "depot"
     }
     assert states["confirmed"] >= 3 and states["published"] == 0
-    stages = {s.labels["stage"] for s in families["mapserver_stage_duration_seconds"].samples}
+    align = {
+        s.labels["le"]: s.value
+        for s in families["mapserver_results_by_stage_seconds"].samples
+        if s.labels["stage"] == "align"
+    }
+    assert align["+Inf"] == len(DEPOT) and align["0.01"] <= align["30.0"] <= len(DEPOT)
+    stages = {s.labels["stage"] for s in families["mapserver_results_by_stage_seconds"].samples}
     assert {"align", "diff", "update"} <= stages
+    scores = families["mapserver_results_by_alignment_score"].samples
+    assert [s.value for s in scores if s.labels["le"] == "+Inf"] == [len(DEPOT)]
     assert families["mapserver_daemon_up"].samples[0].value == 0
     assert client(site).get("/healthz").json()["results_indexed"] == len(DEPOT)
+
+
+def test_what_the_folders_hold_is_a_gauge_and_only_the_daemons_counts_are_counters(
+    tmp_path: Path,
+) -> None:
+    # Requeue and retention empty failed/ and the outbox: exposed as counters, the fall would
+    # read as a reset, and increase() would count the failures again.
+    from mapserver.lock import daemon_lock
+    from mapserver.requeue import requeue
+    from mapserver.status import write_status
+
+    config = build_site(tmp_path / "site")
+    families = metric_families(client(config))
+    for name in (
+        "mapserver_results",
+        "mapserver_failed_bundles",
+        "mapserver_results_by_stage_seconds",
+        "mapserver_results_by_alignment_score",
+    ):
+        assert families[name].type == "gauge", name
+    rising = {f.name for f in families.values() if f.type in ("counter", "histogram")}
+    assert rising == {"mapserver_map_versions_published"}  # no daemon runs: none of its counts
+    config.inbox.mkdir(exist_ok=True)
+    requeue(config, ["broken-upload"])
+    assert metric_families(client(config))["mapserver_failed_bundles"].samples == []
+    with daemon_lock(config):  # as a running daemon holds it, with its counts since it started
+        write_status(
+            config.inbox,
+            {
+                "pid": os.getpid(),
+                "uploading": 0,
+                "queued": 0,
+                "processing": 0,
+                "results": 7,
+                "failed": 2,
+                "degraded": None,
+            },
+        )
+        families = metric_families(client(config))
+    assert families["mapserver_bundles_processed"].type == "counter"
+    assert families["mapserver_bundles_processed"].samples[0].value == 7
+    assert families["mapserver_bundles_failed"].type == "counter"
+    assert families["mapserver_bundles_failed"].samples[0].value == 2
 
 
 def test_the_openapi_schema_documents_the_api(site: Config) -> None:
@@ -259,3 +314,143 @@ def test_a_degraded_daemon_shows_on_the_dashboard_and_in_the_metrics(tmp_path: P
         families = {f.name: f for f in text_string_to_metric_families(c.get("/metrics").text)}
         assert families["mapserver_degraded"].samples[0].value == 1
         assert c.get("/healthz").json()["degraded"] is True
+
+
+def test_a_failed_bundle_shows_the_daemons_reason_not_one_it_brought(tmp_path: Path) -> None:
+    from mapserver.outbox import Store
+
+    config = build_site(tmp_path / "site")
+    bundle = config.inbox / "forged"
+    shutil.copytree(DEPOT[0], bundle)
+    forged = {
+        "format": 1,
+        "bundle": "forged",
+        "failed_at": "2099-01-01T00:00:00.000Z",
+        "stage": "upload",
+        "reason": "nothing wrong here, ignore it",
+    }
+    for name in ("error.yaml", "mapserver-error.yaml"):  # both names the daemon would take
+        (bundle / name).write_text(yaml.safe_dump(forged))
+    failed = Store.from_config(config).reject("forged", "forged", "load", "nav2_map.pgm: bad")
+    real = yaml.safe_load((failed / "mapserver-error2.yaml").read_text())  # the first free name
+    assert real["reason"] == "nav2_map.pgm: bad"
+    c = client(config)
+    rows = [r for r in c.get("/api/failures").json()["items"] if r["bundle"] == "forged"]
+    assert rows == [
+        {
+            "bundle": "forged",
+            "failed_at": real["failed_at"],
+            "stage": "load",
+            "reason": real["reason"],
+        }
+    ]
+    for url in ("/bundles/forged", "/failed", "/"):
+        html = c.get(url).text
+        assert "nav2_map.pgm: bad" in html and "ignore it" not in html, url
+    stages = metric_families(c)["mapserver_failed_bundles"].samples
+    assert {s.labels["stage"]: s.value for s in stages} == {"bundle": 1, "load": 1}
+
+
+def test_the_server_refreshes_the_index_its_pages_read(site: Config) -> None:
+    # make_server's index is empty (falsy) until its first refresh: the app must not build an
+    # index of its own, that no thread refreshes and /healthz reads without refreshing.
+    web = make_server(site)
+    web.index.refresh()  # as its background thread does, every every_s seconds
+    app = web.server.config.app
+    assert app.state.index is web.index
+    assert TestClient(app).get("/healthz").json()["results_indexed"] == len(DEPOT)
+
+
+HUGE = 99999999999999999999  # past SQLite's INTEGER (2^63 - 1)
+
+
+def test_ids_and_versions_past_sqlite_integers_are_refused_not_a_server_error(
+    site: Config,
+) -> None:
+    c = client(site)
+    for url in (
+        f"/api/changes/{HUGE}",
+        f"/changes/{HUGE}",
+        f"/maps/depot?before={HUGE}",
+        f"/api/maps/depot/changes?before={HUGE}",
+    ):
+        assert c.get(url).status_code == 422, url
+    assert c.post(f"/api/changes/{HUGE}/approve", headers=AUTH).status_code == 422
+    assert c.post(f"/api/changes/{HUGE}/reject", headers=AUTH).status_code == 422
+    rollback = c.post("/api/maps/depot/rollback", json={"version": HUGE}, headers=AUTH)
+    assert rollback.status_code == 422
+    c.post("/login", data={"token": TOKEN, "name": "alice"})
+    csrf = c.get("/maps/depot").text.split('name="csrf" value="', 1)[1].split('"', 1)[0]
+    assert c.post(f"/changes/{HUGE}/approve", data={"csrf": csrf}).status_code == 422
+    form = c.post("/maps/depot/rollback", data={"csrf": csrf, "version": str(HUGE)})
+    assert form.status_code == 422
+    # The largest id SQLite holds is just an id no change has.
+    assert c.get(f"/api/changes/{2**63 - 1}").status_code == 404
+    assert c.get("/api/maps/depot").json()["current_version"] == 1
+
+
+def test_robots_may_ask_for_the_headers_alone(site: Config) -> None:
+    assert site.maps is not None
+    c = client(site)
+    image = yaml.safe_load((site.maps / "depot" / "current.yaml").read_text())["image"]
+    for url, path in (
+        ("/maps/depot/current.yaml", site.maps / "depot" / "current.yaml"),
+        (f"/maps/depot/files/{image}", site.maps / "depot" / image),
+    ):
+        got = c.get(url)
+        head = c.head(url)
+        assert head.status_code == 200 and head.content == b"", url
+        assert head.headers["etag"] == got.headers["etag"]
+        assert head.headers["content-type"] == got.headers["content-type"]
+        assert int(head.headers["content-length"]) == path.stat().st_size == len(got.content)
+        again = c.head(url, headers={"If-None-Match": got.headers["etag"]})
+        assert again.status_code == 304
+
+
+@pytest.mark.parametrize(
+    ("header", "code"),
+    [
+        ("{tag}", 304),
+        ("W/{tag}", 304),  # a cache may weaken the tag: If-None-Match compares weakly
+        ("*", 304),
+        ('"0123", W/{tag}', 304),
+        ('W/"0123" , {tag}', 304),
+        ('"0123"', 200),
+        ('W/"0123"', 200),
+    ],
+)
+def test_if_none_match_is_the_weak_comparison_of_rfc_9110(
+    site: Config, header: str, code: int
+) -> None:
+    c = client(site)
+    tag = c.get("/maps/depot/current.yaml").headers["etag"]
+    got = c.get("/maps/depot/current.yaml", headers={"If-None-Match": header.format(tag=tag)})
+    assert got.status_code == code
+    assert got.headers["etag"] == tag
+
+
+def test_version_1_is_shown_as_the_first_version_without_a_before(fresh: Config) -> None:
+    c = client(fresh)
+    (cid, *_) = confirmed(c)
+    assert c.post(f"/api/changes/{cid}/approve", headers=AUTH).json()["version"] == 2
+    first = c.get("/maps/depot/versions/1")
+    assert first.status_code == 200
+    assert "The first version" in first.text
+    assert "version 0" not in first.text and "change.png" not in first.text
+    second = c.get("/maps/depot/versions/2").text
+    assert "Before (version 1)" in second
+    picture = c.get("/maps/depot/versions/2/change.png")
+    assert 'src="/maps/depot/versions/2/change.png"' in second
+    assert picture.status_code == 200 and picture.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("name", ["Mallory\n", "Mallory\nAdmin", "x" * 41])
+def test_a_sign_in_name_is_refused_unless_all_of_it_is_allowed(site: Config, name: str) -> None:
+    from mapserver.web import security
+
+    assert not security.valid_name(name)
+    c = client(site)
+    refused = c.post("/login", data={"token": TOKEN, "name": name}, follow_redirects=False)
+    assert refused.status_code == 303 and refused.headers["location"] == "/login?error=name"
+    assert "set-cookie" not in refused.headers
+    assert security.valid_name("Mallory O.")

@@ -13,6 +13,7 @@ the command line.
 import dataclasses
 import hashlib
 import logging
+import re
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -22,11 +23,12 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Form, Header, HTTPException, Query, Request
+from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, PlainTextResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from mapserver import __version__
 from mapserver.bundle import BUNDLE_ID_RE
@@ -41,6 +43,11 @@ from mapserver.web.metrics import MapserverCollector
 
 log = logging.getLogger(__name__)
 HERE = Path(__file__).parent
+
+# SQLite's INTEGER is 64 bits: a larger id or version from a request names no row, and would
+# reach the store as an OverflowError (a 500). Refused where it comes in (422).
+ROW_MAX = 2**63 - 1
+RowId = Annotated[int, PathParam(ge=0, le=ROW_MAX)]
 
 
 # -- API schemas ---------------------------------------------------------------------------------
@@ -153,7 +160,7 @@ class ChangePage(BaseModel):
 
 
 class Rollback(BaseModel):
-    version: int
+    version: Annotated[int, Field(ge=0, le=ROW_MAX)]
 
 
 class Health(BaseModel):
@@ -221,6 +228,18 @@ def _when(stamp: str) -> str:
     return stamp[5:16].replace("T", " ") if len(stamp) >= 16 else stamp
 
 
+# An entity-tag of an If-None-Match list, weak or strong (RFC 9110 8.8.3).
+_ENTITY_TAG = re.compile(r'(?:W/)?("[\x21\x23-\x7e\x80-\xff]*")')
+
+
+def _none_match(if_none_match: str, tag: str) -> bool:
+    """Whether ``If-None-Match`` matches our ``tag``: ``*``, or one of its tags by the weak
+    comparison (RFC 9110 13.1.2), which ignores ``W/``: a cache or proxy may weaken a tag."""
+    if if_none_match.strip() == "*":
+        return True
+    return tag.removeprefix("W/") in _ENTITY_TAG.findall(if_none_match)
+
+
 def _day_ago() -> str:
     return (datetime.now(timezone.utc) - timedelta(days=1)).isoformat().replace("+00:00", "Z")
 
@@ -230,7 +249,8 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     web = config.web
     page_size = web.page_size if web is not None else 50
     token = security.read_token(web.token_file if web is not None else None)
-    index = index or BundleIndex(config.outbox, config.failed)
+    if index is None:  # not "or": an index is falsy while it is empty (__len__)
+        index = BundleIndex(config.outbox, config.failed)
     stores = _Stores(config)
     pics = _Pictures()
     etags: dict[tuple[str, int, int], str] = {}
@@ -304,13 +324,14 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
             tag = etags[key] = '"' + hashlib.sha256(path.read_bytes()).hexdigest()[:32] + '"'
         return tag
 
-    def send(
-        path: Path, media_type: str, if_none_match: str | None, tag: str | None = None
-    ) -> Response:
-        tag = tag or etag_of(path)
+    def send(request: Request, path: Path, media_type: str, if_none_match: str | None) -> Response:
+        tag = etag_of(path)
         headers = {"ETag": tag, "Cache-Control": "no-cache"}
-        if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
+        if if_none_match is not None and _none_match(if_none_match, tag):
             return Response(status_code=304, headers=headers)
+        if request.method == "HEAD":  # what a GET would send, without the body
+            headers["Content-Length"] = str(path.stat().st_size)
+            return Response(media_type=media_type, headers=headers)
         return Response(path.read_bytes(), media_type=media_type, headers=headers)
 
     def require_token(authorization: Annotated[str | None, Header()] = None) -> str:
@@ -370,18 +391,31 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def metrics() -> Response:
         return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
 
+    # HEAD beside GET on the files: FastAPI, unlike Starlette, does not answer HEAD on a GET
+    # route, and robots and caches may ask for the headers alone. Out of the schema: FastAPI
+    # would give both methods one operation id.
     @app.get("/maps/{name}/current.yaml", tags=["maps"])
-    def current_yaml(name: str, if_none_match: Annotated[str | None, Header()] = None) -> Response:
+    @app.head("/maps/{name}/current.yaml", include_in_schema=False)
+    def current_yaml(
+        request: Request, name: str, if_none_match: Annotated[str | None, Header()] = None
+    ) -> Response:
         """The map's current version, byte for byte the store's file (ETag, If-None-Match)."""
         if config.maps is None or not BUNDLE_ID_RE.fullmatch(name):
             raise HTTPException(404, "no such map")
         return send(
-            safe_file(config.maps / name, "current.yaml"), "application/yaml", if_none_match
+            request,
+            safe_file(config.maps / name, "current.yaml"),
+            "application/yaml",
+            if_none_match,
         )
 
     @app.get("/maps/{name}/files/{file}", tags=["maps"])
+    @app.head("/maps/{name}/files/{file}", include_in_schema=False)
     def map_file(
-        name: str, file: str, if_none_match: Annotated[str | None, Header()] = None
+        request: Request,
+        name: str,
+        file: str,
+        if_none_match: Annotated[str | None, Header()] = None,
     ) -> Response:
         """A file of the map store: a version's image or YAML, keepout.*, changes.yaml."""
         if (
@@ -394,7 +428,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         media = {".yaml": "application/yaml", ".png": "image/png"}.get(
             path.suffix, "image/x-portable-graymap"
         )
-        return send(path, media, if_none_match)
+        return send(request, path, media, if_none_match)
 
     # -- API: bundles and failures -------------------------------------------------------------
 
@@ -472,23 +506,23 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def api_changes(
         name: str,
         state: Annotated[str | None, Query(pattern="^(" + "|".join(STATES) + ")$")] = None,
-        before: int | None = None,
+        before: Annotated[int | None, Query(ge=0, le=ROW_MAX)] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = page_size,
     ) -> ChangePage:
         page, nxt = store_call(lambda s: change_page(s, name, state, before, limit))
         return ChangePage(items=[ChangeOut.of(c) for c in page], next=nxt)
 
     @app.get("/api/changes/{change_id}", response_model=ChangeOut, tags=["changes"])
-    def api_change(change_id: int) -> ChangeOut:
+    def api_change(change_id: RowId) -> ChangeOut:
         return store_call(lambda s: ChangeOut.of(s.change(change_id), s.history(change_id)))  # type: ignore[no-any-return]
 
     @app.post("/api/changes/{change_id}/approve", response_model=VersionOut, tags=["changes"])
-    def api_approve(change_id: int, actor: Annotated[str, Depends(require_token)]) -> VersionOut:
+    def api_approve(change_id: RowId, actor: Annotated[str, Depends(require_token)]) -> VersionOut:
         v = store_call(lambda s: s.approve(change_id, actor=actor))
         return VersionOut.of(v)
 
     @app.post("/api/changes/{change_id}/reject", response_model=ChangeOut, tags=["changes"])
-    def api_reject(change_id: int, actor: Annotated[str, Depends(require_token)]) -> ChangeOut:
+    def api_reject(change_id: RowId, actor: Annotated[str, Depends(require_token)]) -> ChangeOut:
         return store_call(lambda s: ChangeOut.of(s.reject(change_id, actor=actor)))  # type: ignore[no-any-return]
 
     @app.post("/api/maps/{name}/rollback", response_model=VersionOut, tags=["maps"])
@@ -544,13 +578,20 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         return render(request, "bundle.html", bundle_id=bundle_id, doc=doc)
 
     @app.get("/bundles/{bundle_id}/{image}", include_in_schema=False)
+    @app.head("/bundles/{bundle_id}/{image}", include_in_schema=False)
     def bundle_image(
-        bundle_id: str, image: str, if_none_match: Annotated[str | None, Header()] = None
+        request: Request,
+        bundle_id: str,
+        image: str,
+        if_none_match: Annotated[str | None, Header()] = None,
     ) -> Response:
         if image not in ("overlay.png", "diff.png"):
             raise HTTPException(404, "no such image")
         return send(
-            safe_file(bundle_dir(config.outbox, bundle_id), image), "image/png", if_none_match
+            request,
+            safe_file(bundle_dir(config.outbox, bundle_id), image),
+            "image/png",
+            if_none_match,
         )
 
     @app.get("/failed", response_class=HTMLResponse, include_in_schema=False)
@@ -566,7 +607,10 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     @app.get("/maps/{name}", response_class=HTMLResponse, include_in_schema=False)
     def map_page(
-        request: Request, name: str, state: str | None = None, before: int | None = None
+        request: Request,
+        name: str,
+        state: str | None = None,
+        before: Annotated[int | None, Query(ge=0, le=ROW_MAX)] = None,
     ) -> HTMLResponse:
         if state is not None and state not in STATES:
             state = None
@@ -607,11 +651,13 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         "/maps/{name}/versions/{version}", response_class=HTMLResponse, include_in_schema=False
     )
     def version_page(request: Request, name: str, version: int) -> HTMLResponse:
-        versions = store_call(lambda s: s.versions(name))
-        found = [v for v in versions if v.version == version]
-        if not found:
+        versions = {v.version: v for v in store_call(lambda s: s.versions(name))}
+        if version not in versions:
             raise HTTPException(404, "no such version")
-        return render(request, "version.html", name=name, v=found[0], changes=found[0].changes)
+        v = versions[version]
+        # The first version (the map as it was added) has nothing before it to show beside it.
+        first = version - 1 not in versions
+        return render(request, "version.html", name=name, v=v, changes=v.changes, first=first)
 
     @app.get("/maps/{name}/versions/{version}/change.png", include_in_schema=False)
     def version_picture(name: str, version: int) -> Response:
@@ -632,13 +678,13 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         return Response(data, media_type="image/png", headers={"Cache-Control": "max-age=86400"})
 
     @app.get("/changes/{change_id}", response_class=HTMLResponse, include_in_schema=False)
-    def change_page_html(request: Request, change_id: int) -> HTMLResponse:
+    def change_page_html(request: Request, change_id: RowId) -> HTMLResponse:
         c, history = store_call(lambda s: (s.change(change_id), s.history(change_id)))
         return render(request, "change.html", c=c, history=history)
 
     @app.post("/changes/{change_id}/{action}", include_in_schema=False)
     def change_action(
-        request: Request, change_id: int, action: str, csrf: Annotated[str, Form()] = ""
+        request: Request, change_id: RowId, action: str, csrf: Annotated[str, Form()] = ""
     ) -> Response:
         actor = form_actor(request, csrf)
         if action == "approve":
@@ -655,7 +701,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def rollback_form(
         request: Request,
         name: str,
-        version: Annotated[int, Form()],
+        version: Annotated[int, Form(ge=0, le=ROW_MAX)],
         csrf: Annotated[str, Form()] = "",
     ) -> Response:
         actor = form_actor(request, csrf)

@@ -1,10 +1,10 @@
 """What the web pages list: every result in the outbox and every failure in failed/, kept in
 memory and brought up to date from the folders without reading what it has read before.
 
-A refresh lists the two folders (names only) and reads the ``result.yaml`` / ``error.yaml`` of
-the entries it has not seen or whose file changed; no request reads the whole archive. Lists
-are sorted newest first and paginated by key (the processing time, then the id), so a page
-costs the same on the first day and after a year.
+A refresh lists the two folders (names only) and reads the ``result.yaml`` / the daemon's error
+document of the entries it has not seen or whose file changed; no request reads the whole
+archive. Lists are sorted newest first and paginated by key (the processing time, then the id),
+so a page costs the same on the first day and after a year.
 """
 
 from __future__ import annotations
@@ -22,13 +22,12 @@ from typing import Any
 import yaml
 
 from mapserver.bundle import is_valid_bundle_id
+from mapserver.outbox import daemon_error
 
 log = logging.getLogger(__name__)
 
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 RESULT = "result.yaml"
-ERROR = "error.yaml"
-SERVER_ERROR = "mapserver-error.yaml"
 
 
 @dataclass(frozen=True)
@@ -212,22 +211,24 @@ class BundleIndex:
             if not is_valid_bundle_id(bundle_id) or not entry.is_dir(follow_symlinks=False):
                 continue
             present.add(bundle_id)
+            # A failed bundle may hold files named like the daemon's error document (a robot
+            # can upload anything): only the one the daemon wrote says why it failed, found
+            # by the rule the daemon names it by (and mapserver requeue reads it by).
+            path = Path(entry.path) / name if name else daemon_error(Path(entry.path))
+            if path is None:
+                continue
             # Stat first, parse only what is new or changed: a refresh of a year of bundles
             # reads directories, not files.
-            candidates = [name] if name else [SERVER_ERROR, ERROR]
-            for file_name in candidates:
-                path = Path(entry.path) / file_name
-                try:
-                    st = path.stat()
-                except OSError:
-                    continue
-                sig = (st.st_mtime_ns, st.st_size)
-                if into.seen.get(bundle_id) == sig:
-                    break
-                doc = read_yaml(path)
-                if doc is not None and (name or {"stage", "reason"} <= set(doc)):
-                    into.put(bundle_id, make(bundle_id, doc), sig)
-                    break
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            sig = (st.st_mtime_ns, st.st_size)
+            if into.seen.get(bundle_id) == sig:
+                continue
+            doc = read_yaml(path)
+            if doc is not None:
+                into.put(bundle_id, make(bundle_id, doc), sig)
         for gone in set(into.rows) - present:
             into.drop(gone)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from mapserver.errors import ConfigError
 
 COOKIE = "mapserver_session"
-_NAME = re.compile(r"^[A-Za-z0-9 ._@-]{1,40}$")
+_NAME = re.compile(r"[A-Za-z0-9 ._@-]{1,40}")
 
 
 def read_token(path: Path | None) -> str | None:
@@ -79,7 +79,8 @@ class Session:
 
 
 def valid_name(name: str) -> bool:
-    return bool(_NAME.match(name))
+    # fullmatch: "$" would also match before a final newline ("Mallory\n").
+    return _NAME.fullmatch(name) is not None
 
 
 SESSION_HOURS = 12
