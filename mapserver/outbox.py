@@ -481,30 +481,46 @@ class Store:
         return target
 
     def _place_error(self, staged: Path, target: Path) -> None:
-        # Never overwrite an input: a bundle that holds its own error.yaml keeps it.
-        for name in _error_names():
-            if not os.path.lexists(target / name):
-                _rename(staged, target / name)
+        # Never overwrite an input: a bundle that holds files named like the daemon's error
+        # document keeps them, and the daemon's takes the name after the last of them, so that
+        # the last name is always the daemon's (daemon_error).
+        after = _last_error_index(target)
+        for n in count(after + 1):
+            if not os.path.lexists(target / _error_name(n)):
+                _rename(staged, target / _error_name(n))
                 return
 
 
-def _error_names() -> Iterator[str]:
-    """The names the daemon's error document takes in ``failed/<id>/``, the first one free:
-    ``error.yaml``, then (the bundle brought its own) ``mapserver-error.yaml``,
-    ``mapserver-error2.yaml`` ..."""
-    for n in count(1):
-        yield ERROR if n == 1 else f"mapserver-error{'' if n == 2 else n - 1}.yaml"
+def _error_name(n: int) -> str:
+    """The n-th name (from 1) the daemon's error document may take in ``failed/<id>/``:
+    ``error.yaml``, then ``mapserver-error.yaml``, ``mapserver-error2.yaml`` ..."""
+    return ERROR if n == 1 else f"mapserver-error{'' if n == 2 else n - 1}.yaml"
+
+
+def _error_index(name: str) -> int:
+    """Where ``name`` stands among :func:`_error_name`'s names (from 1), 0 when it is none."""
+    if name == ERROR:
+        return 1
+    digits = name.removeprefix("mapserver-error").removesuffix(".yaml")
+    if name != f"mapserver-error{digits}.yaml":
+        return 0
+    if digits == "":
+        return 2
+    n = int(digits) + 1 if digits.isdigit() and digits.isascii() else 0
+    return n if n >= 3 and _error_name(n) == name else 0
+
+
+def _last_error_index(folder: Path) -> int:
+    """The last of :func:`_error_name`'s names present in ``folder``, as its index (0: none)."""
+    return max((_error_index(e.name) for e in _scandir(folder)), default=0)
 
 
 def daemon_error(failed_bundle: Path) -> Path | None:
-    """The daemon's error document in ``failed/<id>/`` (the last of :func:`_error_names` that
-    is there), None when there is none."""
-    found = None
-    for name in _error_names():
-        if not os.path.lexists(failed_bundle / name):
-            return found
-        found = failed_bundle / name
-    raise AssertionError("unreachable")  # pragma: no cover
+    """The daemon's error document in ``failed/<id>/``: the last of :func:`_error_name`'s names
+    there (the daemon names its own after every file of the bundle so named), None when there is
+    none."""
+    last = _last_error_index(failed_bundle)
+    return failed_bundle / _error_name(last) if last else None
 
 
 def _within(reason: str, bundle: Path) -> str:

@@ -14,6 +14,7 @@ from daemon_support import digest, make_bundle
 from mapserver.errors import ConfigError
 from mapserver.outbox import (
     Store,
+    daemon_error,
     error_document,
     sanitize_id,
     suffixed,
@@ -139,6 +140,30 @@ def test_a_bundle_that_holds_its_own_error_yaml_keeps_it(store: Store) -> None:
     path = store.reject("run-1", "run-1", "load", "bad image")
     assert (path / "error.yaml").read_text() == "mine"
     assert yaml.safe_load((path / "mapserver-error.yaml").read_text())["stage"] == "load"
+
+
+@pytest.mark.parametrize(
+    ("brought", "written"),
+    [
+        (("mapserver-error.yaml",), "mapserver-error2.yaml"),
+        (("error.yaml", "mapserver-error5.yaml"), "mapserver-error6.yaml"),
+        (("mapserver-error1.yaml", "mapserver-error02.yaml"), "error.yaml"),  # not our names
+    ],
+)
+def test_the_daemons_error_document_comes_after_every_one_the_bundle_brought(
+    store: Store, brought: tuple[str, ...], written: str
+) -> None:
+    # Session 53's review: a bundle that brought mapserver-error.yaml but no error.yaml got the
+    # daemon's document as error.yaml, and the pages and requeue read the robot's file as the
+    # reason it failed. The last name is the daemon's, whatever the bundle holds.
+    bundle = make_bundle(store.inbox / "run-1")
+    for name in brought:
+        (bundle / name).write_text("stage: align\nreason: everything is fine\n")
+    path = store.reject("run-1", "run-1", "load", "bad image")
+    assert daemon_error(path) == path / written
+    assert yaml.safe_load((path / written).read_text())["reason"] == "bad image"
+    for name in brought:
+        assert (path / name).read_text() == "stage: align\nreason: everything is fine\n"
 
 
 def test_error_document_has_the_contract_fields() -> None:
