@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import reprlib
 import stat
 import struct
 import sys
@@ -353,9 +354,17 @@ class _MapYaml:
     mode: str
 
 
+# How error messages show a YAML value: a few levels and items of it only. YAML aliases make a
+# value of 500 bytes of text a nest of lists billions of items long (shared, so cheap to hold):
+# a full repr cut afterwards took 30 s and 2.3 GB, and one level more ran out of memory.
+_SHORT = reprlib.Repr()  # keyword arguments from Python 3.12 on
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxtuple, _SHORT.maxdict = 3, 4, 4, 4
+_SHORT.maxstring = _SHORT.maxother = 50
+
+
 def _show(value: Any) -> str:
     """A short repr for an error message (a YAML value can be arbitrarily large)."""
-    text = repr(value)
+    text = _SHORT.repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
 

@@ -464,6 +464,27 @@ YAML_ERRORS = {
 }
 
 
+def test_a_value_made_huge_by_yaml_aliases_is_shown_short_and_at_once(tmp_path: Path) -> None:
+    # Session 53's review: 500 bytes of aliases (9 levels of 9) are a list of 9^9 items; its
+    # full repr, cut to 60 characters only afterwards, took 30 s and 2.3 GB (one level more ran
+    # out of memory). The message shows a few items of a few levels.
+    _good(tmp_path)
+    lines = ["a: &a [x, x, x, x, x, x, x, x, x]"]
+    lines += [
+        f"{n}: &{n} [{', '.join([f'*{p}'] * 9)}]"
+        for p, n in zip("abcdefgh", "bcdefghi", strict=True)
+    ]
+    path = tmp_path / "map.yaml"
+    kept = [line for line in path.read_text().splitlines() if not line.startswith("negate:")]
+    path.write_text("\n".join([*lines, *kept, "negate: *i", ""]))
+    assert path.stat().st_size < 600
+    with pytest.raises(MapFileError) as error:
+        load_map(path)
+    assert reason_of(error) == (
+        f"{path}: 'negate' must be 0 or 1, got [[[[...], [...], [...], [...], ...], [[...], [...], [...]..."
+    )
+
+
 @pytest.mark.parametrize("case", YAML_ERRORS)
 def test_bad_yaml_names_the_yaml_and_the_problem(tmp_path: Path, case: str) -> None:
     make, problem = YAML_ERRORS[case]
