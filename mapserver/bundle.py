@@ -407,7 +407,13 @@ def safe_member(bundle_dir: Path, name: str, *, what: str, source: Path) -> Path
         raise BundleError(f"{what} '{name}' must be a relative path inside the bundle", file=source)
     root = bundle_dir.resolve()
     candidate = bundle_dir / name
-    resolved = candidate.resolve()
+    try:
+        resolved = candidate.resolve()
+    except (RuntimeError, OSError) as error:  # a symlink loop: RuntimeError before Python 3.13
+        problem = (
+            "is a symlink loop" if "loop" in str(error).lower() else f"cannot be resolved ({error})"
+        )
+        raise BundleError(f"{what} '{name}' {problem}", file=source) from None
     if not resolved.is_relative_to(root):
         raise BundleError(f"{what} '{name}' points outside the bundle", file=source)
     return candidate
@@ -501,7 +507,16 @@ def check_bundle_files(
         checksummed.append((name, expected.lower(), path))
     # Hashed once every file is there: a ChecksumMismatch means a bundle with nothing missing.
     for name, expected, path in checksummed if verify_checksums else []:
-        actual = sha256_file(path)
+        try:
+            actual = sha256_file(path)
+        except FileNotFoundError:
+            raise BundleIncomplete(
+                f"checksummed file '{name}' is not there yet", file=source
+            ) from None
+        except PermissionError as error:
+            raise BundleError(
+                f"checksummed file '{name}' cannot be read: {error.strerror}", file=path
+            ) from None
         if actual != expected:
             raise ChecksumMismatch(name, expected=expected, actual=actual, file=path)
     slam_yaml, slam_image = yamls["slam"], images["slam"]

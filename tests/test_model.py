@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 import mapserver
+from mapserver import bundle as bundle_module
 from mapserver.bundle import (
     check_bundle_files,
     is_in_flight,
@@ -191,6 +192,31 @@ def test_paths_that_leave_the_bundle_are_errors(tmp_path: Path) -> None:
     os.symlink(tmp_path / "secret.pgm", d / "link.pgm")
     with pytest.raises(BundleError, match="points outside the bundle"):
         safe_member(d, "link.pgm", what="map image", source=d / "slam_map.yaml")
+
+
+def test_a_symlink_loop_and_an_unreadable_checksummed_file_are_the_bundles_errors(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Session 53's review: both were "load failed unexpectedly ...; please report this bundle"
+    # with a traceback (Path.resolve raises RuntimeError on a loop before Python 3.13).
+    d = _bundle(tmp_path)
+    os.symlink("loop", d / "loop")
+    (d / "bundle.yaml").write_text(yaml.safe_dump(dict(MANIFEST, slam_map="loop")))
+    with pytest.raises(BundleError, match=r"bundle\.yaml: slam_map 'loop' is a symlink loop$"):
+        check_bundle_files(d)
+    data = dict(MANIFEST, checksums={"slam_map.pgm": "0" * 64})
+    (d / "bundle.yaml").write_text(yaml.safe_dump(data))
+
+    def refused(path: Path) -> str:
+        raise PermissionError(13, "Permission denied", str(path))
+
+    # A file mode 000 (root, which runs the tests, reads any file: the refusal is simulated).
+    monkeypatch.setattr(bundle_module, "sha256_file", refused)
+    with pytest.raises(BundleError) as info:
+        check_bundle_files(d)
+    assert info.value.reason == (
+        f"{d / 'slam_map.pgm'}: checksummed file 'slam_map.pgm' cannot be read: Permission denied"
+    )
 
 
 # --- configuration ---------------------------------------------------------------------------
