@@ -78,6 +78,20 @@ def test_write_result_replaces_an_existing_result(tmp_path: Path) -> None:
     assert sorted(p.name for p in final.iterdir()) == ["overlay.png", "result.yaml"]
 
 
+def test_the_result_says_how_long_its_images_took_to_write(tmp_path: Path, store: Store) -> None:
+    # Contract section 3's example: timings_ms {load, align, diff, cluster, write}.
+    pipeline_ms = {"load": 1.0, "render": 2.0}
+    images = {"overlay.png": b"1" * 100_000, "diff.png": b"2"}
+    for written in (
+        write_result(tmp_path, Outcome("a", {"timings_ms": dict(pipeline_ms)}, images)),
+        store.publish(Outcome("run-1", {"timings_ms": dict(pipeline_ms)}, images)),
+    ):
+        timings = yaml.safe_load((written / "result.yaml").read_text())["timings_ms"]
+        assert list(timings) == ["load", "render", "write"]
+        assert {k: timings[k] for k in pipeline_ms} == pipeline_ms
+        assert 0.0 <= timings["write"] < 10_000.0
+
+
 def test_allocate_keeps_a_free_id(store: Store) -> None:
     make_bundle(store.inbox / "run-1")
     assert store.allocate("run-1").bundle_id == "run-1"
