@@ -1006,7 +1006,7 @@ def _render(
     with ThreadPoolExecutor(max_workers=1) as encoder:
         over_png = encoder.submit(render.encode_png, over)
         dimg = render.diff_image(
-            view.grid, window, view.state, masks.added, masks.removed, differences
+            view.grid, window, view.state, masks.added, masks.removed, differences, banner=banner
         )
         diff_png = render.encode_png(dimg)
         return {"overlay.png": over_png.result(), "diff.png": diff_png}

@@ -259,8 +259,11 @@ def diff_image(
     added: NDArray[np.bool_],
     removed: NDArray[np.bool_],
     differences: list[Difference],
+    *,
+    banner: str | None = None,
 ) -> NDArray[np.uint8]:
-    """The filtered difference mask (added red, removed blue) over faint global walls."""
+    """The filtered difference mask (added red, removed blue) over faint global walls; with
+    ``banner``, the overlay's band across the top too (the two images keep one extent)."""
     image = _painted(
         _crop(global_state, window),
         window,
@@ -272,7 +275,7 @@ def diff_image(
     )
     _boxes(image, grid, window, differences)
     _legend(image, [("added", ADDED), ("removed", REMOVED)])
-    return image
+    return with_banner(image, banner) if banner else image
 
 
 # Flat colours with a few lines: the "up" filter and run-length coding encode them 3x faster

@@ -62,6 +62,15 @@ def test_result_and_overlay_say_whether_the_alignment_was_trusted(
         assert len(outcome.result["differences"]) == 1  # the planted box
         assert notice is None
         assert _banner_rows(outcome.images["overlay.png"]) == 0
+    # Contract section 3: diff.png has the overlay's extent, pixel for pixel, banner or not
+    # (session 53's review: the banner's band made the overlay 36-62 rows taller).
+    over, diff = (_decoded(outcome.images[name]) for name in ("overlay.png", "diff.png"))
+    assert over.shape == diff.shape
+    assert _banner_rows(outcome.images["diff.png"]) == _banner_rows(outcome.images["overlay.png"])
+
+
+def _decoded(png: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
 
 
 def test_process_prints_the_untrusted_line(
