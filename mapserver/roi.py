@@ -54,6 +54,11 @@ def _outline(
     )
     biggest = max(contours, key=cv2.contourArea)
     approx = cv2.approxPolyDP(biggest, simplify_m / grid.resolution, True).reshape(-1, 2)
+    if len(approx) < 3:
+        # A region a few cells across simplifies to a point or a line: its box instead, by the
+        # cells' outer edges (a polygon, even around one cell).
+        x, y, w, h = cv2.boundingRect(biggest)
+        approx = np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]], float) - 0.5
     return [(round(float(x), 3), round(float(y), 3)) for x, y in grid.to_world(approx + offset)]
 
 

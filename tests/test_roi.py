@@ -50,3 +50,22 @@ def test_observed_is_what_the_local_map_knows() -> None:
     ys = [p[1] for p in r.polygon]
     assert min(xs) == pytest.approx(4.05, abs=0.11) and max(xs) == pytest.approx(11.95, abs=0.11)
     assert min(ys) == pytest.approx(5.05, abs=0.11) and max(ys) == pytest.approx(14.95, abs=0.11)
+
+
+@pytest.mark.parametrize(("rows", "cols"), [(1, 1), (3, 3), (1, 6)])
+def test_an_observed_region_a_few_cells_across_is_a_polygon_around_them(
+    rows: int, cols: int
+) -> None:
+    # Session 53's review: a 1x1 or 3x3 local map's outline simplified (0.25 m) to one point.
+    state = np.full(GRID.shape, UNKNOWN, np.uint8)
+    state[100 : 100 + rows, 50 : 50 + cols] = FREE
+    r = roi.observed(state, GRID)
+    x0, y_top = GRID.x0 + 50 * 0.1, GRID.y0 + (200 - 100) * 0.1
+    assert sorted(r.polygon) == sorted(
+        [
+            (x0, y_top),
+            (x0 + cols * 0.1, y_top),
+            (x0 + cols * 0.1, y_top - rows * 0.1),
+            (x0, y_top - rows * 0.1),
+        ]
+    )
