@@ -796,7 +796,7 @@ def _read_png(f: FileIO, head: bytes, image_path: Path, size_limit: _SizeLimit) 
             f"PNG file is over {limit} bytes, far more than {width} x {height} pixels need",
             file=image_path,
         )
-    _check_png_chunks(data, image_path)
+    trns = _check_png_chunks(data, image_path)
     try:
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:
@@ -810,20 +810,41 @@ def _read_png(f: FileIO, head: bytes, image_path: Path, size_limit: _SizeLimit) 
             f"{width} x {height}",
             file=image_path,
         )
-    return _grey_of(decoded, image_path)
+    keyed = _grey_key_transparent(decoded, trns, colour, depth)
+    grey = _grey_of(decoded, image_path)
+    return grey if keyed is None else _Decoded(grey.grey, keyed)
 
 
-def _check_png_chunks(data: bytes, image_path: Path) -> None:
-    """Walk the chunk list: a truncated file (cv2 may decode part of it) has no complete IEND."""
+def _check_png_chunks(data: bytes, image_path: Path) -> bytes | None:
+    """Walk the chunk list: a truncated file (cv2 may decode part of it) has no complete IEND.
+    Returns the data of its tRNS chunk, if any."""
     pos = len(_PNG_SIGNATURE)
+    trns = None
     while pos + 8 <= len(data):
         length, kind = struct.unpack_from(">I4s", data, pos)
+        if kind == b"tRNS" and pos + 8 + length <= len(data):
+            trns = data[pos + 8 : pos + 8 + length]
         pos += 12 + length
         if pos > len(data):
             break
         if kind == b"IEND":
-            return
+            return trns
     raise MapFileError("PNG is truncated: it ends before its IEND chunk", file=image_path)
+
+
+def _grey_key_transparent(
+    decoded: NDArray[Any], trns: bytes | None, colour: int, depth: int
+) -> NDArray[np.bool_] | None:
+    """The pixels a grey PNG's tRNS chunk makes transparent: those whose sample is its key
+    (cv2 decodes such a PNG to one channel and drops that transparency, where colour palettes
+    and RGB keys come out with an alpha channel). None when there is no such key."""
+    if colour != 0 or trns is None or len(trns) != 2 or decoded.ndim != 2:
+        return None
+    key = struct.unpack(">H", trns)[0]
+    if depth < 8:  # decoded scaled up to 8 bits, as libpng expands low bit depths
+        key = key * 255 // ((1 << depth) - 1)
+    transparent = np.asarray(decoded == key)
+    return transparent if transparent.any() else None
 
 
 def _grey_of(decoded: NDArray[Any], image_path: Path) -> _Decoded:

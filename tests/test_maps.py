@@ -259,6 +259,34 @@ def test_scale_mode_reads_transparent_pixels_as_unknown(tmp_path: Path) -> None:
     assert m.warnings == ()
 
 
+@pytest.mark.parametrize(
+    ("depth", "rows", "key"),
+    [
+        # Four pixels: black, white, the key, white (each grey at its bit depth).
+        (1, b"\0" + bytes([0b0101_0000]), 0),  # 1-bit: the key is black, so black is unknown
+        (8, b"\0" + bytes([0, 255, 250, 255]), 250),  # 250 alone would read as free
+        (16, b"\0" + struct.pack(">4H", 0, 65535, 64250, 65535), 64250),
+    ],
+    ids=["1-bit", "8-bit", "16-bit"],
+)
+def test_a_grey_png_with_a_transparent_key_reads_it_as_unknown_in_scale_mode(
+    tmp_path: Path, depth: int, rows: bytes, key: int
+) -> None:
+    # Session 53's review: grey PNGs with a tRNS chunk decoded to one channel in OpenCV, their
+    # transparency dropped: unexplored cells read as free floor, false removals.
+    (tmp_path / "map.png").write_bytes(
+        png_bytes(4, 1, depth, 0, rows, png_chunk(b"tRNS", struct.pack(">H", key)))
+    )
+    scale = load_map(write_yaml(tmp_path, "map.png", mode="scale"))
+    if depth == 1:
+        np.testing.assert_array_equal(scale.state[0], [U, F, U, F])
+    else:
+        np.testing.assert_array_equal(scale.state[0], [W, F, U, F])
+    trinary = load_map(write_yaml(tmp_path, "map.png"))
+    assert trinary.state[0, 1] == F and len(trinary.warnings) == 1
+    assert "not opaque" in trinary.warnings[0]
+
+
 def test_yaml_values_are_read_as_nav2_reads_them(tmp_path: Path) -> None:
     # PyYAML reads 5e-2 (no dot) and quoted numbers as strings; yaml-cpp reads them as numbers.
     (tmp_path / "map.pgm").write_bytes(pgm_bytes(GREY_IMAGE))
