@@ -12,6 +12,7 @@ crashes (or a daemon killed with -9) leaves nothing half-done behind.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import itertools
 import logging
@@ -236,6 +237,8 @@ class Service:
         self._health = Health()
         self._waiting: deque[_Waiting] = deque()
         self._retake: dict[str, Fault] = {}
+        # Inbox entries whose own folder the server may not write (said once each).
+        self._locked: set[str] = set()
         """Inbox entries that could not be taken (or rejected) because of a fault."""
         self._store_fault: Fault | None = None
         """The map store's files lag its database, or it could not be used (a fault)."""
@@ -482,9 +485,27 @@ class Service:
             self._store.claim(name, bundle_id)
         except FileNotFoundError:
             self._retake.pop(name, None)
+            self._locked.discard(name)
             log.warning("%s: left the inbox before it was taken", name)
             return
         except OSError as error:
+            entry = self._config.inbox / name
+            if locked_folder(error, entry):
+                # The bundle's own fault, not the inbox's: no degraded state, one line for
+                # the operator, and the rescans try it again until it can be moved.
+                self._retake.pop(name, None)
+                if name not in self._locked:
+                    self._locked.add(name)
+                    log.error(
+                        "%s: cannot take it: the server may not write its folder %s, and a "
+                        "folder moves only with write permission on itself (a copy of a "
+                        "read-only folder?); it stays in the inbox, taken once it may "
+                        "(chmod -R u+w, or the group write permission the documented uploads "
+                        "give)",
+                        name,
+                        entry,
+                    )
+                return
             if is_transient(error):  # it stays in the inbox, looked at again after a pause
                 self._retake[name] = fault_of(error, self._folders, "inbox")
                 log.info("%s: cannot take it now (%s); it stays in the inbox", name, error)
@@ -492,6 +513,9 @@ class Service:
             log.error("%s: cannot take it from the inbox: %s", name, error)
             return
         self._retake.pop(name, None)
+        if name in self._locked:
+            self._locked.discard(name)
+            log.info("%s: its folder may be written now: taken", name)
         if bundle_id != name:
             log.info("%s: id already in use, taken as %s", name, bundle_id)
         log.info("%s: upload %.1f ms", bundle_id, decision.waited_s * 1000.0)
@@ -1011,6 +1035,24 @@ class Service:
     def _start_observer(self) -> BaseObserver:
         self._handler = InboxHandler(self._config.inbox, self._hints)
         return start_observer(self._config, self._handler)
+
+
+def may_write(path: Path) -> bool:
+    """Whether this process may write ``path`` (a module-level name, so that a test run as root,
+    which may write anything, can say otherwise)."""
+    return os.access(path, os.W_OK)
+
+
+def locked_folder(error: OSError, entry: Path) -> bool:
+    """Whether ``error``, from moving inbox entry ``entry``, is the entry's own folder refusing
+    the server: a directory moves to another folder only with write permission on itself (its
+    ``..`` changes), which a copy of a read-only folder (``cp -a``, ``rsync -a``) lacks, while
+    the inbox itself may be written."""
+    if error.errno not in (errno.EACCES, errno.EPERM):
+        return False
+    if entry.is_symlink() or not entry.is_dir():
+        return False
+    return not may_write(entry) and may_write(entry.parent)
 
 
 def _guarded(bundle_id: str, handle: Callable[..., object], *args: Any) -> None:

@@ -328,6 +328,48 @@ def test_a_folder_the_daemon_may_not_write_keeps_the_bundle_and_its_result_is_wr
     assert (result.read_bytes(), result.stat().st_mtime_ns) == written  # not written again
 
 
+def test_a_bundle_folder_the_daemon_may_not_write_is_said_once_and_taken_when_it_may(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bundle folder copied from a read-only one (mode 0555) cannot be moved: a directory
+    moves only with write permission on itself. That is the bundle's fault, not the inbox's
+    (session 53's review: the inbox was reported degraded, "Permission denied", for ever). As
+    root the test may write anything: the refusal and the permission are simulated."""
+    from mapserver import service as service_module
+
+    locked, tries = {"on": True}, {"n": 0}
+    claim, may_write = Store.claim, service_module.may_write
+
+    def claim_or_refuse(self: Store, name: str, bundle_id: str) -> Path:
+        tries["n"] += 1
+        if locked["on"]:
+            raise PermissionError(errno.EACCES, "Permission denied", str(self.inbox / name))
+        return claim(self, name, bundle_id)
+
+    monkeypatch.setattr(Store, "claim", claim_or_refuse)
+    monkeypatch.setattr(
+        service_module,
+        "may_write",
+        lambda path: may_write(path) and not (locked["on"] and path.name == "ro-1"),
+    )
+    caplog.set_level(logging.INFO, logger="mapserver")
+    source = make_bundle(tmp_path / "src" / "ro-1")
+    dirs = layout(tmp_path)
+    config = config_for(tmp_path, rescan_seconds=1.0)
+    with running(config) as (service, _):
+        upload(source, dirs["inbox"])
+        said = "ro-1: cannot take it: the server may not write its folder"
+        wait_until(lambda: said in caplog.text, timeout=30, what="the bundle's folder named")
+        wait_until(lambda: tries["n"] >= 2, timeout=30, what="a second try (the rescan)")
+        assert not service.health.degraded and service.health.faults == ()
+        assert caplog.text.count(said) == 1  # once, not once per try
+        assert visible(dirs["inbox"]) == ["ro-1"]
+        locked["on"] = False
+        wait_until(lambda: done(tmp_path, ["ro-1"]), timeout=60, what="processed")
+    assert "ro-1: its folder may be written now: taken" in caplog.text
+    assert_settled(tmp_path, {"ro-1": source})
+
+
 def test_a_map_version_that_cannot_be_published_makes_the_daemon_degraded_until_it_is(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
