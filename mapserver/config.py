@@ -376,7 +376,38 @@ def parse_config(data: object, *, base_dir: Path, source: Path | None = None) ->
         config = Config.model_validate(data)
     except ValidationError as error:
         raise ConfigError(describe_validation(error), file=source) from None
-    return config.resolved(base_dir)
+    config = config.resolved(base_dir)
+    _refuse_nested_folders(config, source)
+    return config
+
+
+def _refuse_nested_folders(config: Config, source: Path | None) -> None:
+    """The server's folders (and the map store) must be apart, none inside another: the
+    daemon lists every entry of its inbox as an upload, and retention deletes every old entry of
+    outbox/, archive/ and failed/ (session 53's review: with ``maps: data/maps`` and ``outbox:
+    data``, retention deleted the map store)."""
+    folders = {"inbox": config.inbox, "outbox": config.outbox, "archive": config.archive}
+    folders["failed"] = config.failed
+    if config.maps is not None:
+        folders["maps"] = config.maps
+    real = {key: path.resolve() for key, path in folders.items()}
+    keys = list(real)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1 :]:
+            pa, pb = real[a], real[b]
+            if pa == pb:
+                problem = f"{a} and {b} are one folder ({pa})"
+            elif pa in pb.parents or pb in pa.parents:
+                outer, inner = (a, b) if pa in pb.parents else (b, a)
+                problem = f"{inner} ({real[inner]}) lies inside {outer} ({real[outer]})"
+            else:
+                continue
+            raise ConfigError(
+                f"{problem}: the server's folders must be apart, none inside another (the "
+                "daemon takes every entry of the inbox as an upload, and retention deletes "
+                "old entries of outbox, archive and failed)",
+                file=source,
+            )
 
 
 def load_config(path: str | Path | None = None) -> Config:

@@ -265,6 +265,28 @@ def test_bad_config_names_the_key(tmp_path: Path, text: str, expected: str) -> N
     assert expected in info.value.reason and "bad.yaml" in info.value.reason
 
 
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        # Session 53's review: retention deleted outbox/maps, the whole map store.
+        ("outbox: data\nmaps: data/maps\n", "maps ({d}/data/maps) lies inside outbox ({d}/data)"),
+        ("outbox: data\ninbox: data/inbox\n", "inbox ({d}/data/inbox) lies inside outbox"),
+        ("archive: ./done\nfailed: done\n", "archive and failed are one folder ({d}/done)"),
+        ("inbox: spool\nfailed: spool/../spool/bad\n", "failed ({d}/spool/bad) lies inside inbox"),
+    ],
+)
+def test_folders_inside_one_another_are_refused(tmp_path: Path, text: str, expected: str) -> None:
+    path = tmp_path / "m.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert expected.format(d=tmp_path) in info.value.reason
+    assert "must be apart" in info.value.reason
+    # Side by side, as the example configuration has them: fine.
+    path.write_text("inbox: data/inbox\noutbox: data/outbox\nmaps: data/maps\n")
+    assert load_config(path).maps == tmp_path / "data" / "maps"
+
+
 def test_config_is_frozen() -> None:
     with pytest.raises(Exception):  # noqa: B017 - pydantic's frozen-instance error
         Config().workers = 4  # type: ignore[misc]
