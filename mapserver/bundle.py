@@ -60,6 +60,8 @@ def upload_commands(bundle_dir: str, destination: str = UPLOAD_TO) -> list[list[
     alone, last: when it arrives, the upload is complete."""
     source = bundle_dir.rstrip("/") or "/"
     bundle_id = Path(source).name
+    if bundle_id in ("", ".", ".."):  # `-o .`: the folder's own name, not the inbox's root
+        bundle_id = Path(source).resolve().name
     sep = "" if destination.endswith((":", "/")) else "/"
     target = f"{destination}{sep}{bundle_id}/"
     common = ["rsync", "-a", "--chmod=D2770,F660"]

@@ -65,6 +65,26 @@ def test_bundle_writes_a_complete_bundle_with_checksums(
     assert "rsync" in capsys.readouterr().out
 
 
+def test_bundle_written_in_the_current_folder_uploads_into_a_folder_named_by_its_id(
+    tmp_path: Path,
+    maps: tuple[Path, Path],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Session 53's review: `-o .` printed rsync calls to "/srv/inbox//", the inbox's root.
+    slam, nav2 = maps
+    (tmp_path / "run-0053").mkdir()
+    monkeypatch.chdir(tmp_path / "run-0053")
+    args = ["bundle", "--slam-map", str(slam), "--nav2-map", str(nav2), "--nav2-pose", "5,5,0"]
+    assert main([*args, "--slam-pose", "5,5,0", "-o", ".", "--upload-to", "/srv/inbox/"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    lines = [line.split() for line in out if line.strip().startswith("rsync")]
+    assert [line[-2:] for line in lines] == [
+        ["./", "/srv/inbox/run-0053/"],
+        ["./bundle.yaml", "/srv/inbox/run-0053/"],
+    ]
+
+
 def test_bundle_reads_a_yaml_trajectory_and_leaves_nav2_map_out(
     tmp_path: Path, maps: tuple[Path, Path]
 ) -> None:
