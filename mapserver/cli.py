@@ -30,7 +30,7 @@ import yaml
 
 from mapserver.bundle import UPLOAD_TO
 from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
-from mapserver.errors import MapFileError, MapserverError
+from mapserver.errors import ConfigError, MapFileError, MapserverError, describe_validation
 from mapserver.fleet.cli import open_store
 from mapserver.fleet.cli import register as register_fleet_commands
 from mapserver.lock import AlreadyRunning, daemon_pid, store_lock
@@ -236,9 +236,17 @@ def _cmd_web(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     if args.listen:
+        from pydantic import ValidationError
+
         from mapserver.config import WebConfig
 
-        web = (config.web or WebConfig()).model_copy(update={"listen": args.listen})
+        # Validated as the configuration file's web.listen is (model_copy checks nothing).
+        try:
+            web = WebConfig.model_validate(
+                {**(config.web or WebConfig()).model_dump(), "listen": args.listen}
+            )
+        except ValidationError as error:
+            raise ConfigError(f"--listen: {describe_validation(error)}") from None
         config = config.model_copy(update={"web": web})
     _setup_daemon_logging(config.log_level)
     server = make_server(config)

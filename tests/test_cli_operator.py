@@ -100,6 +100,16 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert capsys.readouterr().out == f"mapserver {mapserver.__version__}\n"
 
 
+def test_web_listen_on_the_command_line_is_checked_as_in_the_file(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # Session 53's review: `mapserver web --listen nonsense` ended in a ValueError's traceback.
+    assert main(["web", "--listen", "nonsense"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapserver: error: --listen: 'listen': String should match pattern")
+    assert err.count("\n") == 1
+
+
 def test_python_dash_m_mapserver_is_the_command() -> None:
     # Where the environment's scripts are not on the PATH (session 53's review used a wrapper).
     done = subprocess.run(

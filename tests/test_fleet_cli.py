@@ -59,6 +59,17 @@ def test_maps_add_list_show_and_refusals(
         assert code == 1 and out == "", args
         assert err.count("\n") == 1 and err.startswith("mapserver: error: ") and message in err, err
     assert tree(tmp_path / "maps") == before
+    # Past SQLite's integers: argparse's usage error, not an OverflowError's traceback (session
+    # 53's review; the web got its bound the same day).
+    for args in (
+        ("changes", "approve", "99999999999999999999"),
+        ("maps", "rollback", "hall", str(2**63)),
+    ):
+        with pytest.raises(SystemExit) as done:
+            main([*args, "--config", cfg])
+        assert done.value.code == 2
+        assert "must be at most 9223372036854775807" in capsys.readouterr().err
+    assert tree(tmp_path / "maps") == before
 
 
 def test_the_fleet_commands_need_a_map_store(

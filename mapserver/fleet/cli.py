@@ -148,7 +148,12 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    if value > _MAX_ID:  # SQLite's integers: past them, no change or version is there
+        raise argparse.ArgumentTypeError(f"must be at most {_MAX_ID}, got {value}")
     return value
+
+
+_MAX_ID = 2**63 - 1
 
 
 def _leaf(
