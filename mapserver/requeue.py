@@ -74,28 +74,58 @@ def requeue(config: Config, ids: Sequence[str]) -> list[Requeued]:
             problems.append(f"{bundle_id}: a file or link was uploaded, not a bundle folder")
         elif os.path.lexists(config.inbox / bundle_id):
             problems.append(f"{bundle_id}: {config.inbox / bundle_id} exists already")
+    if wanted and not config.inbox.is_dir():
+        problems.append(f"the inbox {config.inbox} is not there (the daemon makes it at start)")
     if problems:
         raise MapserverError("; ".join(problems) + " (nothing was requeued)", stage="requeue")
-    return [_requeue_one(config, bundle_id) for bundle_id in wanted]
+    done: list[Requeued] = []
+    for bundle_id in wanted:
+        try:
+            done.append(_requeue_one(config, bundle_id))
+        except OSError as error:
+            before = f"; requeued before it: {', '.join(d.bundle_id for d in done)}" if done else ""
+            raise MapserverError(
+                f"{bundle_id}: cannot move it: {error.strerror or error} ({error.filename}); it "
+                f"stays in {config.failed} as it was (run requeue as the daemon's user){before}",
+                stage="requeue",
+            ) from None
+    return done
 
 
 def _requeue_one(config: Config, bundle_id: str) -> Requeued:
+    """One bundle back to the inbox; on an OSError (a folder it may not write), everything as
+    it was before."""
     source = config.failed / bundle_id
     document: dict[str, object] = {}
     error = daemon_error(source)
     history = None
+    made = False
     if error is not None:
         document = _read(error)
         folder = source / HISTORY
-        folder.mkdir(exist_ok=True)
+        if not folder.is_dir():
+            folder.mkdir()
+            made = True
         history = next(
             folder / f"error-{n}.yaml"
             for n in count(1)
             if not (folder / f"error-{n}.yaml").exists()
         )
-        rename_durable(error, history)
+        try:
+            rename_durable(error, history)
+        except OSError:
+            if made:
+                folder.rmdir()
+            raise
     target = config.inbox / bundle_id
-    rename_durable(source, target)
+    try:
+        rename_durable(source, target)
+    except OSError:
+        if error is not None and history is not None:  # the error document back in its place
+            rename_durable(history, error)
+            if made:
+                history.parent.rmdir()
+        raise
     return Requeued(
         bundle_id,
         str(document.get("failed_at", "?")),

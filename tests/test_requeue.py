@@ -87,3 +87,41 @@ def test_requeue_needs_ids_or_a_date_and_refuses_a_date_it_cannot_read(
     assert "give the ids of failed bundles, or --failed-since DATE" in capsys.readouterr().err
     assert main(["requeue", "--config", str(config), "--failed-since", "yesterday"]) == 1
     assert "--failed-since: not a date or time: 'yesterday'" in capsys.readouterr().err
+
+
+def test_a_requeue_that_cannot_move_the_bundle_says_so_and_leaves_it_as_it_was(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Session 53's review: with no inbox, or a folder the operator's user may not write, a
+    # traceback, and error.yaml already moved into the history: the bundle in failed/ without
+    # its reason.
+    config = write_daemon_config(tmp_path)
+    dirs = layout(tmp_path)
+    failed = dirs["failed"] / "run-0043"
+    make_bundle(failed)
+    reason = "failed_at: '2026-12-07T00:00:00Z'\nstage: load\nreason: cannot read slam_map.pgm\n"
+    (failed / "error.yaml").write_text(reason)
+    before = digest(failed)
+    assert not dirs["inbox"].exists()  # no daemon ever started here
+    assert main(["requeue", "--config", str(config), "run-0043"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapserver: error: ") and "is not there" in err and err.count("\n") == 1
+    assert digest(failed) == before
+    dirs["inbox"].mkdir()
+
+    import mapserver.requeue as requeue_module
+
+    real = requeue_module.rename_durable
+
+    def refused(src: Path, dst: Path) -> None:
+        if Path(dst).parent == dirs["inbox"]:  # the move of the bundle itself
+            raise PermissionError(13, "Permission denied", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(requeue_module, "rename_durable", refused)
+    assert main(["requeue", "--config", str(config), "run-0043"]) == 1
+    err = capsys.readouterr().err
+    assert "run-0043: cannot move it: Permission denied" in err and "stays in" in err
+    assert err.count("\n") == 1
+    assert digest(failed) == before and not (failed / HISTORY).exists()
+    assert (failed / "error.yaml").read_text() == reason
