@@ -365,8 +365,25 @@ def _copy_map(map_yaml: Path, out_dir: Path, stem: str) -> list[str]:
     image = image if image.is_absolute() else map_yaml.parent / image
     if not image.is_file():
         raise MapFileError(f"the image '{data['image']}' is not there", file=map_yaml)
+    from mapserver.maps import load_map
+
+    # Read as the server will (its default limits): a map it would refuse is refused here, not
+    # after the upload (session 53's review: a YAML without resolution, a text file as image).
+    defaults = Config()
+    load_map(
+        map_yaml,
+        max_pixels=defaults.max_image_pixels,
+        resolution_range_m=defaults.limits.resolution_range_m,
+        max_extent_m=defaults.limits.max_map_extent_m,
+    )
     image_name = stem + (image.suffix.lower() or ".pgm")
-    shutil.copyfile(image, out_dir / image_name)
+    try:
+        shutil.copyfile(image, out_dir / image_name)
+    except OSError as error:
+        raise MapFileError(
+            f"cannot copy the image '{data['image']}' into {out_dir}: {error.strerror or error}",
+            file=map_yaml,
+        ) from None
     data["image"] = image_name
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
     (out_dir / f"{stem}.yaml").write_text(text, encoding="utf-8")
@@ -400,7 +417,12 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
     robot = args.robot or (re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "robot")
     trajectory = _read_trajectory(args.trajectory) if args.trajectory is not None else None
     created = not out_dir.exists()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise MapserverError(
+            f"cannot make the output directory: {error.strerror or error}", file=out_dir
+        ) from None
     try:
         files = _copy_map(args.slam_map, out_dir, "slam_map")
         manifest: dict[str, object] = {

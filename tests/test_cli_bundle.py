@@ -107,6 +107,13 @@ def test_bundle_reads_a_yaml_trajectory_and_leaves_nav2_map_out(
         ("b2", ["--trajectory", "route.txt"], "pose 1"),
         ("b3", ["--robot", "no spaces"], "robot"),
         ("b4", ["--nav2-map", "missing.yaml"], "missing.yaml"),
+        # Session 53's review: both were written, and refused by the server after the upload.
+        (
+            "b5",
+            ["--nav2-map", "no-resolution.yaml"],
+            "no-resolution.yaml: missing key 'resolution'",
+        ),
+        ("b6", ["--nav2-map", "text.yaml"], "not a PGM or PNG image"),
     ],
 )
 def test_bundle_refuses_what_the_server_would_reject(
@@ -120,8 +127,15 @@ def test_bundle_refuses_what_the_server_would_reject(
     (tmp_path / "taken").mkdir()
     (tmp_path / "taken" / "x").write_text("x")
     (tmp_path / "route.txt").write_text("0 0\n")
+    good = yaml.safe_load(maps[1].read_text())
+    (tmp_path / "robot" / "no-resolution.yaml").write_text(
+        yaml.safe_dump({k: v for k, v in good.items() if k != "resolution"})
+    )
+    (tmp_path / "robot" / "notes.pgm").write_text("a text file saved as a map image\n")
+    (tmp_path / "robot" / "text.yaml").write_text(yaml.safe_dump({**good, "image": "notes.pgm"}))
     args = ["--slam-map", str(maps[0]), "--nav2-pose", "1,2,0", "--slam-pose", "0,0,0"]
-    extra = [str(tmp_path / e) if e.endswith((".txt", ".yaml")) else e for e in extra]
+    here = {"no-resolution.yaml": "robot/no-resolution.yaml", "text.yaml": "robot/text.yaml"}
+    extra = [str(tmp_path / here.get(e, e)) if e.endswith((".txt", ".yaml")) else e for e in extra]
     assert main(["bundle", *args, *extra, "-o", str(tmp_path / output)]) == 1
     assert message in capsys.readouterr().err
     assert output == "taken" or not (tmp_path / output).exists()  # nothing half-made
