@@ -675,7 +675,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     )
     if not bundles:
         raise MapserverError("no sample bundles here", file=samples, stage="demo")
-    _prepare_demo_dir(root)
+    try:
+        _prepare_demo_dir(root)
+    except OSError as refused:
+        raise MapserverError(
+            f"cannot make the demo folder: {refused.strerror or refused}; choose another with "
+            "--dir",
+            file=Path(refused.filename) if refused.filename else root,
+            stage="demo",
+        ) from None
     out = sys.stdout
     out.write(f"demo folder: {root}\n")
     for line in _demo_maps(root, bundles):

@@ -15,7 +15,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from mapserver.errors import ConfigError, describe_validation, no_such_path
+from mapserver.errors import ConfigError, MapserverError, describe_validation, no_such_path
 
 ENV_VAR = "MAPSERVER_CONFIG"
 
@@ -364,6 +364,21 @@ def check_paths(config: Config) -> None:
     if ref is not None and not ref.is_file():
         problem = no_such_path(ref) if not ref.exists() else "not a file"
         raise ConfigError(f"reference_map: {problem}", file=ref)
+    if ref is not None:
+        # Its YAML and its image's header, as a bundle that names no nav2_map will read them
+        # (a map YAML whose image is gone, a PGM given for the YAML: every such bundle failed).
+        from mapserver.maps import load_map
+
+        try:
+            load_map(
+                ref,
+                max_pixels=config.max_image_pixels,
+                resolution_range_m=config.limits.resolution_range_m,
+                max_extent_m=config.limits.max_map_extent_m,
+            )
+        except MapserverError as error:
+            where = "" if error.file in (None, ref) else f" ({error.file})"
+            raise ConfigError(f"reference_map: {error.problem_line}{where}", file=ref) from None
 
 
 def parse_config(data: object, *, base_dir: Path, source: Path | None = None) -> Config:

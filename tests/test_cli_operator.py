@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ from daemon_support import Daemon, layout, make_bundle, upload, wait_until
 from daemon_support import write_config as write_daemon_config
 
 import mapserver
-from mapserver.cli import main
+from mapserver.cli import SAMPLES, main
 from mapserver.config import parse_config
 from mapserver.lock import daemon_lock
 
@@ -91,6 +92,40 @@ def test_a_misspelt_reference_map_stops_run_and_check_config_at_once(
         assert main([command, "--config", str(config_file)]) == 1
         assert capsys.readouterr().err == expected
     assert not (tmp_path / "inbox").exists()  # run stopped before it made anything
+
+
+def test_a_reference_map_that_cannot_be_read_stops_run_and_check_config_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Session 53's review: a YAML whose image is gone, or the image given for the YAML, passed
+    # check-config, and every bundle without a nav2_map then failed at stage load.
+    sample = SAMPLES / "depot-demo-01"
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    shutil.copy(sample / "nav2_map.yaml", maps / "gone.yaml")
+    shutil.copy(sample / "nav2_map.pgm", maps / "depot.pgm")
+    config_file = tmp_path / "mapserver.yaml"
+    for ref, problem in (
+        ("gone.yaml", "cannot read image 'nav2_map.pgm'"),
+        ("depot.pgm", "map YAML is larger than 65536 bytes; is it a map YAML?"),
+    ):
+        config_file.write_text(f"reference_map: maps/{ref}\n")
+        for command in ("check-config", "run"):
+            assert main([command, "--config", str(config_file)]) == 1
+            err = capsys.readouterr().err
+            assert err.startswith(f"mapserver: error: {maps / ref}: reference_map: "), err
+            assert problem in err and err.count("\n") == 1
+    assert not (tmp_path / "inbox").exists()  # run stopped before it made anything
+
+
+def test_demo_in_a_folder_it_may_not_make_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "file").write_text("not a folder")
+    assert main(["demo", "--dir", str(tmp_path / "file" / "demo")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapserver: error: ") and "cannot make the demo folder" in err
+    assert err.count("\n") == 1
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
