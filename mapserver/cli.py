@@ -161,9 +161,16 @@ def _refuse_a_daemons_outbox(config: Config, outbox: Path) -> None:
         return
     pid = daemon_pid(config)
     if pid is not None:
+        # With a map store, --outbox alone is refused too (the daemon feeds the store).
+        store = (
+            " and a configuration with maps: null (the daemon alone feeds the map store; to "
+            "feed it, upload the bundle to its inbox)"
+            if config.maps is not None
+            else ""
+        )
         raise MapserverError(
             f"{AlreadyRunning(pid, config.inbox).reason}, and {outbox} is its outbox; "
-            "write these results elsewhere with --outbox DIR",
+            f"write these results elsewhere with --outbox DIR{store}",
             stage="process",
         )
 

@@ -42,6 +42,14 @@ def test_process_refuses_to_write_into_the_outbox_of_a_running_daemon(
         assert (other / "run-1" / "result.yaml").is_file()
     assert main(["process", "--config", str(config_file), str(bundle)]) == 0  # no daemon now
     assert (tmp_path / "outbox" / "run-1" / "result.yaml").is_file()
+    # With a map store the daemon feeds, --outbox alone is refused as well: say the whole way
+    # (session 53's review: the message suggested --outbox, which was then refused).
+    config_file.write_text("workers: 1\nmaps: ./maps\n")
+    with daemon_lock(parse_config({}, base_dir=tmp_path)):
+        assert main(["process", "--config", str(config_file), str(bundle)]) == 1
+        err = capsys.readouterr().err
+        assert "--outbox DIR and a configuration with maps: null" in err
+        assert "upload the bundle to its inbox" in err
 
 
 def test_process_says_what_each_wrong_path_is_in_one_line_and_processes_the_rest(
