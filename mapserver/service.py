@@ -237,9 +237,9 @@ class Service:
         self._health = Health()
         self._waiting: deque[_Waiting] = deque()
         self._retake: dict[str, Fault] = {}
-        # Inbox entries whose own folder the server may not write (said once each).
-        self._locked: set[str] = set()
         """Inbox entries that could not be taken (or rejected) because of a fault."""
+        self._locked: set[str] = set()
+        """Inbox entries whose own folder the server may not write (each said once)."""
         self._store_fault: Fault | None = None
         """The map store's files lag its database, or it could not be used (a fault)."""
         self._folders = {
