@@ -256,6 +256,12 @@ class UpdateConfig(_Frozen):
     paint_min_sessions: int = Field(2, ge=1)
     """A published version paints a cell of a change only when at least this many of its
     sessions saw that cell changed (or all of them, when fewer)."""
+    max_clock_ahead_hours: float = Field(8784.0, gt=0)
+    """A bundle stamped more than this ahead of the server's clock feeds nothing (its result
+    says to check the robot's clock). A year (366 days) by default, so that recorded sessions
+    replayed on a server whose clock is behind them still count; within it, a robot clock a
+    day ahead stretches the spans it takes part in by that day (a temporary change could then
+    pass ``confirm_span_hours``). A live fleet whose robots keep time (NTP) can set 1."""
 
 
 class WebConfig(_Frozen):

@@ -518,6 +518,28 @@ def test_a_robot_with_a_wrong_clock_does_not_feed_the_map(
     assert change.sessions == 2 and change.state == "pending"  # a 56-year span would confirm it
 
 
+def test_a_fleet_that_keeps_time_can_refuse_a_robot_clock_a_day_ahead(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 53's review: a clock one day ahead made a 6-hour temporary removal span 30 hours
+    # and publish. By default a day ahead counts (replays); update.max_clock_ahead_hours: 1
+    # refuses it.
+    ahead = (datetime.now(timezone.utc) + timedelta(days=1)).strftime("%Y-%m-%dT%H:%M:%SZ")
+    strict = FleetStore(tmp_path / "maps", UpdateConfig(mode="auto", max_clock_ahead_hours=1.0))
+    strict.add_map("hall", hall)
+    robot = Robot()
+    update = strict.apply(dataclasses.replace(wall_seen(robot, 0), stamp=ahead))
+    assert update.warnings == (
+        f"map hall: not applied: its stamp {ahead} is more than 1 hours ahead of this server's "
+        "clock (update.max_clock_ahead_hours): check the robot's clock",
+    )
+    assert strict.changes("hall") == []
+    (tmp_path / "default").mkdir()
+    default = new_store(tmp_path / "default", hall)
+    assert not default.apply(dataclasses.replace(wall_seen(robot, 1), stamp=ahead)).warnings
+    assert len(default.changes("hall")) == 1
+
+
 def test_sessions_dated_days_ahead_of_the_server_clock_still_feed_the_map(
     tmp_path: Path, hall: Path
 ) -> None:

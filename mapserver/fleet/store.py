@@ -54,20 +54,22 @@ log = logging.getLogger(__name__)
 WRITER_LOCK = ".writer.lock"
 
 
-# How far ahead of this server's clock a bundle's stamp may be. Generous: a clock a few minutes
-# or days off (no NTP) is harmless, and so are recorded sessions replayed on a server whose own
-# clock is behind them (a test rig, a benchmark); a year ahead is a clock set wrong.
-_FUTURE_TOLERANCE = timedelta(days=366)
+# How far ahead of this server's clock a bundle's stamp may be: ``update.max_clock_ahead_hours``
+# (a year by default: recorded sessions replayed on a server whose own clock is behind them, a
+# test rig, a benchmark, must count; a year ahead is a clock set wrong).
 _EARLIEST_STAMP = "2000-01-01T00:00:00Z"
 
 
-def _implausible_stamp(stamp: str) -> str | None:
+def _implausible_stamp(stamp: str, ahead_hours: float) -> str | None:
     """Why a bundle's stamp cannot be right (check the robot's clock), or None."""
     if stamp < _EARLIEST_STAMP:
         return f"its stamp {stamp} is before 2000: check the robot's clock"
-    limit = datetime.now(timezone.utc) + _FUTURE_TOLERANCE
+    limit = datetime.now(timezone.utc) + timedelta(hours=ahead_hours)
     if tracker.parse_stamp(stamp) > limit:
-        return f"its stamp {stamp} is more than a year ahead of this server's clock: check the robot's clock"
+        return (
+            f"its stamp {stamp} is more than {ahead_hours:g} hours ahead of this server's clock "
+            "(update.max_clock_ahead_hours): check the robot's clock"
+        )
     return None
 
 
@@ -563,7 +565,7 @@ class FleetStore:
         start = time.perf_counter()
         stamp = utc_stamp(obs.stamp)
         map_id, lattice, yaw, _ = self._map(obs.map_name)
-        implausible = _implausible_stamp(stamp)
+        implausible = _implausible_stamp(stamp, self.settings.max_clock_ahead_hours)
         if implausible:
             # A robot with a wrong clock: 1970 or next year would make a cart persist for
             # years, or expire every pending change. Its result is written; the map is not fed.
