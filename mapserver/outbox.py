@@ -100,15 +100,23 @@ def suffixed(bundle_id: str, n: int) -> str:
     return bundle_id[: _MAX_ID - len(suffix)] + suffix
 
 
+HISTORY = ".mapserver-history"
+"""The folder ``mapserver requeue`` keeps a bundle's earlier error documents in (requeue.py)."""
+
+
 def _tree(root: Path) -> dict[str, tuple[int, int, str]]:
-    """Relative path -> (file type, size, symlink target) of everything under ``root``."""
+    """Relative path -> (file type, size, symlink target) of everything under ``root``, but the
+    error documents requeue kept in it (a requeued repeat is the same upload)."""
     out: dict[str, tuple[int, int, str]] = {}
     for path in tree.walk(root):
+        rel = os.path.relpath(path, root)
+        if rel == HISTORY or rel.startswith(HISTORY + os.sep):
+            continue
         st = os.lstat(path)
         kind = stat.S_IFMT(st.st_mode)
         target = os.readlink(path) if stat.S_ISLNK(st.st_mode) else ""
         size = st.st_size if stat.S_ISREG(st.st_mode) else 0
-        out[os.path.relpath(path, root)] = (kind, size, target)
+        out[rel] = (kind, size, target)
     return out
 
 
@@ -206,6 +214,17 @@ def write_result(outbox: Path, outcome: Outcome) -> Path:
     else:
         _rename(tmp, final)
     return final
+
+
+def _earlier_ids(bundle_id: str) -> list[str]:
+    """The ids ``bundle_id`` is a suffixed form of (``run-7.3``: ``run-7``, ``run-7.2``)."""
+    root, dot, number = bundle_id.rpartition(".")
+    if not dot or not number.isdigit() or not number.isascii() or int(number) < 2:
+        return []
+    n = int(number)
+    if not root or suffixed(root, n) != bundle_id:
+        return []
+    return [root, *(suffixed(root, k) for k in range(2, n))]
 
 
 def _holds_input(folder: Path) -> bool:
@@ -364,6 +383,20 @@ class Store:
         base = name if is_valid_bundle_id(name) else sanitize_id(name)
         duplicate = None
         listing = _plain_tree(entry) if find_duplicate else None  # listed once, compared often
+        if listing is not None:
+            # A requeued repeat (run-7.2) is a copy of run-7 or of an id between them.
+            for candidate in _earlier_ids(base):
+                for place, label in (
+                    (self.archive_dir, self.archive_dir.name),
+                    (self.taken, f"{self.inbox.name}/{TAKEN}"),
+                ):
+                    earlier = place / candidate
+                    if (
+                        duplicate is None
+                        and earlier.is_dir()
+                        and _same_tree(entry, listing, earlier)
+                    ):
+                        duplicate = f"{label}/{candidate}"
         for n in count(1):
             candidate = base if n == 1 else suffixed(base, n)
             for place, label in (

@@ -26,9 +26,7 @@ from mapserver.bundle import MANIFEST, is_valid_bundle_id
 from mapserver.config import Config
 from mapserver.errors import MapserverError
 from mapserver.fsio import rename_durable
-from mapserver.outbox import daemon_error
-
-HISTORY = ".mapserver-history"
+from mapserver.outbox import HISTORY, daemon_error
 
 
 @dataclass(frozen=True)

@@ -118,6 +118,18 @@ def test_allocate_suffixes_an_id_in_use_and_spots_a_repeated_upload(
     assert store.allocate("run-1.4").duplicate_of == "inbox/.taken/run-1.4"
 
 
+def test_a_requeued_repeat_is_still_a_repeat_of_the_bundle_it_copies(store: Store) -> None:
+    # Session 53's review: the repeat of run-1, failed as run-1.2 and sent back by requeue
+    # (its error document kept in .mapserver-history), was processed as a new bundle.
+    make_bundle(store.archive_dir / "run-1", seed=1)
+    repeat = make_bundle(store.inbox / "run-1.2", seed=1)
+    (repeat / ".mapserver-history").mkdir()
+    (repeat / ".mapserver-history" / "error-1.yaml").write_text("stage: bundle\n")
+    assert store.allocate("run-1.2").duplicate_of == "archive/run-1"
+    make_bundle(store.inbox / "run-5.3", seed=2)  # another bundle under a suffixed name
+    assert store.allocate("run-5.3").duplicate_of is None
+
+
 def test_invalid_names_get_a_valid_id() -> None:
     assert sanitize_id("bad id!") == "bad_id_"
     assert sanitize_id("..") == "bundle"
