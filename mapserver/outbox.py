@@ -224,7 +224,11 @@ def _earlier_ids(bundle_id: str) -> list[str]:
     n = int(number)
     if not root or suffixed(root, n) != bundle_id:
         return []
-    return [root, *(suffixed(root, k) for k in range(2, n))]
+    # Bounded: an id such as "a.999999999" must not cost a billion looks.
+    return [root, *(suffixed(root, k) for k in range(2, min(n, _EARLIER_IDS_MAX)))]
+
+
+_EARLIER_IDS_MAX = 100
 
 
 def _holds_input(folder: Path) -> bool:

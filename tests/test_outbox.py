@@ -128,6 +128,8 @@ def test_a_requeued_repeat_is_still_a_repeat_of_the_bundle_it_copies(store: Stor
     assert store.allocate("run-1.2").duplicate_of == "archive/run-1"
     make_bundle(store.inbox / "run-5.3", seed=2)  # another bundle under a suffixed name
     assert store.allocate("run-5.3").duplicate_of is None
+    make_bundle(store.inbox / "a.999999999", seed=1)  # looked at in bounded time
+    assert store.allocate("a.999999999").bundle_id == "a.999999999"
 
 
 def test_invalid_names_get_a_valid_id() -> None:
