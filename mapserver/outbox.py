@@ -385,36 +385,26 @@ class Store:
         hand, that the upload is byte-identical to (a repeated upload)."""
         entry = self.inbox / name
         base = name if is_valid_bundle_id(name) else sanitize_id(name)
-        duplicate = None
         listing = _plain_tree(entry) if find_duplicate else None  # listed once, compared often
-        if listing is not None:
-            # A requeued repeat (run-7.2) is a copy of run-7 or of an id between them.
-            for candidate in _earlier_ids(base):
-                for place, label in (
-                    (self.archive_dir, self.archive_dir.name),
-                    (self.taken, f"{self.inbox.name}/{TAKEN}"),
-                ):
-                    earlier = place / candidate
-                    if (
-                        duplicate is None
-                        and earlier.is_dir()
-                        and _same_tree(entry, listing, earlier)
-                    ):
-                        duplicate = f"{label}/{candidate}"
-        for n in count(1):
-            candidate = base if n == 1 else suffixed(base, n)
+
+        def copied(candidate: str) -> str | None:
+            """The archived or in-hand bundle ``candidate`` when the upload is a copy of it."""
+            if listing is None:
+                return None
             for place, label in (
                 (self.archive_dir, self.archive_dir.name),
                 (self.taken, f"{self.inbox.name}/{TAKEN}"),
             ):
                 earlier = place / candidate
-                if (
-                    duplicate is None
-                    and listing is not None
-                    and earlier.is_dir()
-                    and _same_tree(entry, listing, earlier)
-                ):
-                    duplicate = f"{label}/{candidate}"
+                if earlier.is_dir() and _same_tree(entry, listing, earlier):
+                    return f"{label}/{candidate}"
+            return None
+
+        # A requeued repeat (run-7.2) is a copy of run-7 or of an id between them.
+        duplicate = next(filter(None, map(copied, _earlier_ids(base))), None)
+        for n in count(1):
+            candidate = base if n == 1 else suffixed(base, n)
+            duplicate = duplicate or copied(candidate)
             if not self._in_use(candidate):
                 return Allocation(candidate, duplicate)
         raise AssertionError("unreachable")  # pragma: no cover
