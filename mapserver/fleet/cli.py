@@ -13,6 +13,7 @@ from typing import Any
 
 from mapserver.config import Config, load_config
 from mapserver.errors import ConfigError
+from mapserver.fleet.db import MAX_ROW_ID
 
 
 def open_store(config: Config, *, create: bool = False) -> Any:
@@ -148,12 +149,9 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
-    if value > _MAX_ID:  # SQLite's integers: past them, no change or version is there
-        raise argparse.ArgumentTypeError(f"must be at most {_MAX_ID}, got {value}")
+    if value > MAX_ROW_ID:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_ROW_ID}, got {value}")
     return value
-
-
-_MAX_ID = 2**63 - 1
 
 
 def _leaf(

@@ -14,6 +14,9 @@ from pathlib import Path
 from mapserver.errors import StoreError
 
 DB_NAME = "store.db"
+MAX_ROW_ID = 2**63 - 1
+"""SQLite's largest INTEGER: a larger change id or version names no row, and would reach SQLite
+as an OverflowError; the command line and the web refuse it where it comes in."""
 
 # Each entry migrates the schema from version i to i + 1 (PRAGMA user_version).
 MIGRATIONS: tuple[str, ...] = (

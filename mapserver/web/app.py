@@ -34,6 +34,7 @@ from mapserver import __version__
 from mapserver.bundle import BUNDLE_ID_RE
 from mapserver.config import Config
 from mapserver.errors import MapserverError, StoreError
+from mapserver.fleet.db import MAX_ROW_ID
 from mapserver.fleet.model import STATES, ChangeInfo, VersionInfo
 from mapserver.maps import load_map
 from mapserver.status import Report, report
@@ -44,10 +45,9 @@ from mapserver.web.metrics import MapserverCollector
 log = logging.getLogger(__name__)
 HERE = Path(__file__).parent
 
-# SQLite's INTEGER is 64 bits: a larger id or version from a request names no row, and would
-# reach the store as an OverflowError (a 500). Refused where it comes in (422).
-ROW_MAX = 2**63 - 1
-RowId = Annotated[int, PathParam(ge=0, le=ROW_MAX)]
+# A larger id or version from a request names no row, and would reach the store as an
+# OverflowError (a 500): refused where it comes in (422).
+RowId = Annotated[int, PathParam(ge=0, le=MAX_ROW_ID)]
 
 
 # -- API schemas ---------------------------------------------------------------------------------
@@ -160,7 +160,7 @@ class ChangePage(BaseModel):
 
 
 class Rollback(BaseModel):
-    version: Annotated[int, Field(ge=0, le=ROW_MAX)]
+    version: Annotated[int, Field(ge=0, le=MAX_ROW_ID)]
 
 
 class Health(BaseModel):
@@ -506,7 +506,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def api_changes(
         name: str,
         state: Annotated[str | None, Query(pattern="^(" + "|".join(STATES) + ")$")] = None,
-        before: Annotated[int | None, Query(ge=0, le=ROW_MAX)] = None,
+        before: Annotated[int | None, Query(ge=0, le=MAX_ROW_ID)] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = page_size,
     ) -> ChangePage:
         page, nxt = store_call(lambda s: change_page(s, name, state, before, limit))
@@ -610,7 +610,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         request: Request,
         name: str,
         state: str | None = None,
-        before: Annotated[int | None, Query(ge=0, le=ROW_MAX)] = None,
+        before: Annotated[int | None, Query(ge=0, le=MAX_ROW_ID)] = None,
     ) -> HTMLResponse:
         if state is not None and state not in STATES:
             state = None
@@ -701,7 +701,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def rollback_form(
         request: Request,
         name: str,
-        version: Annotated[int, Form(ge=0, le=ROW_MAX)],
+        version: Annotated[int, Form(ge=0, le=MAX_ROW_ID)],
         csrf: Annotated[str, Form()] = "",
     ) -> Response:
         actor = form_actor(request, csrf)
