@@ -8,6 +8,7 @@ for built-in defaults).
 
 from __future__ import annotations
 
+import itertools
 import os
 from pathlib import Path
 from typing import Literal
@@ -407,28 +408,28 @@ def _refuse_nested_folders(config: Config, source: Path | None) -> None:
     daemon lists every entry of its inbox as an upload, and retention deletes every old entry of
     outbox/, archive/ and failed/ (session 53's review: with ``maps: data/maps`` and ``outbox:
     data``, retention deleted the map store)."""
-    folders = {"inbox": config.inbox, "outbox": config.outbox, "archive": config.archive}
-    folders["failed"] = config.failed
-    if config.maps is not None:
-        folders["maps"] = config.maps
-    real = {key: path.resolve() for key, path in folders.items()}
-    keys = list(real)
-    for i, a in enumerate(keys):
-        for b in keys[i + 1 :]:
-            pa, pb = real[a], real[b]
-            if pa == pb:
-                problem = f"{a} and {b} are one folder ({pa})"
-            elif pa in pb.parents or pb in pa.parents:
-                outer, inner = (a, b) if pa in pb.parents else (b, a)
-                problem = f"{inner} ({real[inner]}) lies inside {outer} ({real[outer]})"
-            else:
-                continue
-            raise ConfigError(
-                f"{problem}: the server's folders must be apart, none inside another (the "
-                "daemon takes every entry of the inbox as an upload, and retention deletes "
-                "old entries of outbox, archive and failed)",
-                file=source,
-            )
+    folders = {
+        "inbox": config.inbox,
+        "outbox": config.outbox,
+        "archive": config.archive,
+        "failed": config.failed,
+        "maps": config.maps,
+    }
+    real = {key: path.resolve() for key, path in folders.items() if path is not None}
+    for a, b in itertools.combinations(real, 2):
+        if real[a] == real[b]:
+            problem = f"{a} and {b} are one folder ({real[a]})"
+        elif real[a] in real[b].parents or real[b] in real[a].parents:
+            outer, inner = (a, b) if real[a] in real[b].parents else (b, a)
+            problem = f"{inner} ({real[inner]}) lies inside {outer} ({real[outer]})"
+        else:
+            continue
+        raise ConfigError(
+            f"{problem}: the server's folders must be apart, none inside another (the daemon "
+            "takes every entry of the inbox as an upload, and retention deletes old entries of "
+            "outbox, archive and failed)",
+            file=source,
+        )
 
 
 def load_config(path: str | Path | None = None) -> Config:
