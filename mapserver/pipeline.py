@@ -238,17 +238,15 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
     route = _route_slam(files)
     manifest = bundle_dir / MANIFEST
     slam, nav2 = files.manifest.pose.slam, files.manifest.pose.nav2
-    _refuse_far_off(np.array([[slam.x, slam.y]]), "pose.slam", local, "local", extent, manifest)
+    _refuse_far_off(np.array([[slam.x, slam.y]]), "pose.slam", local, "slam", extent, manifest)
     if route is not None:
-        _refuse_far_off(route, "trajectory", local, "local", extent, manifest)
-    _refuse_far_off(
-        np.array([[nav2.x, nav2.y]]), "pose.nav2", global_map, "global", extent, manifest
-    )
+        _refuse_far_off(route, "trajectory", local, "slam", extent, manifest)
+    _refuse_far_off(np.array([[nav2.x, nav2.y]]), "pose.nav2", global_map, "nav2", extent, manifest)
     return _Inputs(files, local, global_map, route)
 
 
 def _refuse_far_off(
-    points: np.ndarray, name: str, on: OccupancyMap, which: str, margin_m: float, manifest: Path
+    points: np.ndarray, name: str, on: OccupancyMap, frame: str, margin_m: float, manifest: Path
 ) -> None:
     """Refuse a bundle whose ``points`` (N, 2) lie more than ``margin_m`` (the limit on a map's
     extent) outside the map they belong to: a pose in the wrong frame or a broken value, which
@@ -262,10 +260,11 @@ def _refuse_far_off(
         return
     i = int(far[0])
     what = name if len(points) == 1 else f"{name} pose {i}"
+    which = "local" if frame == "slam" else "global"  # the map of that frame
     raise BundleError(
         f"{what} at ({points[i, 0]:g}, {points[i, 1]:g}) lies {off[i]:.0f} m outside the {which} "
         f"map (x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}), more than limits.max_map_extent_m "
-        f"({margin_m:g} m): is it in the {'slam' if which == 'local' else 'nav2'} frame?",
+        f"({margin_m:g} m): is it in the {frame} frame?",
         file=manifest,
     )
 
