@@ -103,3 +103,35 @@ def test_states_on_a_coarser_lattice_vote_occupied_first() -> None:
     assert (window.row0, window.col0, window.rows, window.cols) == (0, 0, 3, 3)
     assert occupied.tolist() == [[True, False, False], [False, False, False], [False, False, False]]
     assert free.tolist() == [[False, False, False], [False, True, False], [False, False, True]]
+
+
+def test_each_tile_keeps_the_newest_observations_and_a_reader_gets_them_newest_first(
+    conn: sqlite3.Connection,
+) -> None:
+    rng = np.random.default_rng(5)
+    window = Window(100, 120, 60, 200)  # over 2 x 3 tiles
+    seen = {}
+    for hour in (3, 1, 4, 2, 5):  # applied out of stamp order
+        occupied, free = observation(rng, window)
+        seen[hour] = (occupied, free)
+        with transaction(conn):
+            evidence.keep_observation(
+                conn,
+                1,
+                evidence.pack_tiles(window, occupied, free),
+                stamp=f"2026-11-21T0{hour}:00:00Z",
+                bundle_id=f"b{hour}",
+                robot="r1",
+                keep=3,
+            )
+    got = evidence.observations(conn, 1, window, before="2026-11-21T05:00:00Z")
+    assert [s.bundle_id for s in got] == ["b4", "b3"]  # b5 is not before; b1 and b2 dropped
+    for s in got:
+        occupied, free = seen[int(s.bundle_id[1:])]
+        assert np.array_equal(s.occupied, occupied) and np.array_equal(s.free, free)
+        assert s.robot == "r1"
+    rows = conn.execute("SELECT count(*) FROM observations").fetchone()[0]
+    assert rows == 3 * 6
+    part = Window(130, 150, 10, 10)  # inside one tile: the same cells, cut
+    (newest, _) = evidence.observations(conn, 1, part, before="2026-11-21T05:00:00Z")
+    assert np.array_equal(newest.occupied, seen[4][0][30:40, 30:40])

@@ -393,6 +393,7 @@ def test_a_store_made_before_rollbacks_recorded_their_source_reads_it_from_the_n
     store.close()
     conn = sqlite3.connect(tmp_path / "maps" / "store.db")  # as schema 2 left it
     conn.execute("ALTER TABLE versions DROP COLUMN copy_of")
+    conn.execute("DROP TABLE observations")
     conn.execute("PRAGMA user_version = 2")
     conn.commit()
     conn.close()
@@ -461,6 +462,37 @@ def test_sessions_that_show_a_change_without_reporting_it_count_and_paint(
     assert (current(tmp_path)[WALL] == OCCUPIED).all()  # painted, not an empty version
     (change,) = store.changes("hall")
     assert change.sessions == 3 and change.version == 2
+
+
+def test_sessions_before_a_change_was_found_count_when_their_local_maps_showed_it(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(robot.observe(0))  # before the wall was built: the hall as it was
+    store.apply(robot.observe(8, added=(WALL,)))  # its local map shows the wall; no difference
+    store.apply(robot.observe(16, added=(WALL,)))  # the same
+    last = store.apply(wall_seen(robot, 24))  # the first to report it: three sessions, 16 h
+    assert last.new_version == 2
+    (change,) = store.changes("hall")
+    assert change.sessions == 3 and change.first_seen == "2026-11-21T16:00:00Z"
+    assert change.bundles == ["r1-002", "r1-003", "r1-004"]
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()
+
+
+def test_the_count_back_stops_at_a_session_that_saw_the_area_as_before(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(robot.observe(0, added=(PERSON,)))  # a person stood there that morning
+    store.apply(robot.observe(8))  # gone
+    store.apply(robot.observe(16, added=(PERSON,)))  # someone again, not reported
+    store.apply(robot.observe(24, added=(PERSON,), found=(("added", PERSON),)))
+    (change,) = store.changes("hall")
+    # The sessions at 16 h and 24 h, not the one at 0 h: the one at 8 h saw the spot free.
+    assert (change.state, change.sessions) == ("pending", 2)
+    assert change.first_seen == "2026-11-22T00:00:00Z"
 
 
 def test_two_reviewers_approving_at_once_get_two_whole_versions(tmp_path: Path, hall: Path) -> None:

@@ -351,7 +351,36 @@ class ChangeTracker:
             "INSERT INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
             (cid, obs.bundle_id, obs.robot, stamp),
         )
+        self._count_earlier(map_id, lattice, cid, kind, cells, stamp)
         return cid
+
+    def _count_earlier(
+        self, map_id: int, lattice: Lattice, cid: int, kind: str, cells: IntArray, stamp: str
+    ) -> None:
+        """Count a new change in the earlier sessions whose local maps showed it though their
+        differences did not report it (too few cells that time, a fold check, a drift): the
+        sessions of contract section 7 are the bundles whose local map shows the change, not
+        only those that found it. Back from ``stamp``, newest first, each kept observation is
+        judged as a later one would be; the first that shows the area as before ends the count
+        (the change began after it: the box not yet there, the door still shut)."""
+        row0, col0, last_row, last_col = _box(cells, lattice, 0)
+        window = Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
+        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
+        counted = False
+        for seen in evidence.observations(self._conn, map_id, window, before=stamp):
+            verdict = tracker.judge(
+                kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+            )
+            if verdict == "as_before":
+                break
+            if verdict != "shows":
+                continue
+            shown = tracker.shown_cells(
+                kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+            )
+            counted |= self._sighting(cid, seen.bundle_id, seen.robot, seen.stamp, shown)
+        if counted:
+            self._refresh(cid, lattice)
 
     def _observed_after(
         self, map_id: int, lattice: Lattice, cells: IntArray, stamp: str
@@ -396,18 +425,24 @@ class ChangeTracker:
     def _support(
         self, c: _Change, cells: IntArray, obs: Observation, stamp: str, lattice: Lattice
     ) -> None:
+        if self._sighting(c.id, obs.bundle_id, obs.robot, stamp, cells):
+            self._refresh(c.id, lattice, stamp_shown=stamp)
+
+    def _sighting(self, cid: int, bundle_id: str, robot: str, stamp: str, cells: IntArray) -> bool:
+        """Count one bundle's sighting of a change and the cells it showed; False when that
+        bundle was counted on it already (merged changes)."""
         cur = self._conn.execute(
             "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
-            (c.id, obs.bundle_id, obs.robot, stamp),
+            (cid, bundle_id, robot, stamp),
         )
         if cur.rowcount == 0:
-            return  # this bundle was counted on it already (merged changes)
+            return False
         self._conn.executemany(
             "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1) "
             "ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + 1",
-            ((c.id, int(x)) for x in cells),
+            ((cid, int(x)) for x in cells),
         )
-        self._refresh(c.id, lattice, stamp_shown=stamp)
+        return True
 
     def _merge(self, target: _Change, other: _Change) -> None:
         """Fold ``other`` into ``target`` (one thing seen in two parts): sightings, cells and

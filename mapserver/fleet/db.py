@@ -132,6 +132,20 @@ MIGRATIONS: tuple[str, ...] = (
         substr(note, 21, instr(substr(note, 21) || ' ', ' ') - 1) AS INTEGER
     ) WHERE note LIKE 'rollback to version %';
     """,
+    # 4: the latest bundles' observations, tile by tile, with who made them and when: a change
+    # found late is counted in the earlier sessions whose local maps showed it.
+    """
+    CREATE TABLE observations (
+        map_id INTEGER NOT NULL REFERENCES maps(id),
+        tile_row INTEGER NOT NULL,
+        tile_col INTEGER NOT NULL,
+        stamp TEXT NOT NULL,
+        bundle_id TEXT NOT NULL,
+        robot TEXT NOT NULL,
+        data BLOB NOT NULL,
+        PRIMARY KEY (map_id, tile_row, tile_col, stamp, bundle_id)
+    ) WITHOUT ROWID;
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 

@@ -211,3 +211,76 @@ def read_window(conn: sqlite3.Connection, map_id: int, window: Window) -> TileEv
         out.free[in_window] = tile.free[in_tile]
         out.last_hour[in_window] = tile.last_hour[in_tile]
     return out
+
+
+# How many bundles' observations each tile keeps (the newest, by stamp): what a change found
+# late can be counted in. A tile on a busy route sees many bundles a day; the sessions a change
+# needs to be confirmed are few (update.confirm_sessions), and the ones its first finder
+# missed come just before it.
+KEEP_OBSERVATIONS = 64
+
+
+@dataclass(frozen=True)
+class Seen:
+    """One bundle's observation of a window: who, when, and its (rows, cols) bool arrays."""
+
+    stamp: str
+    bundle_id: str
+    robot: str
+    occupied: NDArray[np.bool_]
+    free: NDArray[np.bool_]
+
+
+def keep_observation(
+    conn: sqlite3.Connection,
+    map_id: int,
+    tiles: Iterable[TileDelta],
+    *,
+    stamp: str,
+    bundle_id: str,
+    robot: str,
+    keep: int = KEEP_OBSERVATIONS,
+) -> None:
+    """Keep one bundle's packed tiles with its stamp, bundle id and robot, inside the caller's
+    transaction; each tile keeps the newest ``keep`` bundles' observations."""
+    for tr, tc, blob in tiles:
+        conn.execute(
+            "INSERT OR REPLACE INTO observations "
+            "(map_id, tile_row, tile_col, stamp, bundle_id, robot, data) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (map_id, tr, tc, stamp, bundle_id, robot, blob),
+        )
+        oldest_kept = conn.execute(
+            "SELECT stamp, bundle_id FROM observations WHERE map_id = ? AND tile_row = ? "
+            "AND tile_col = ? ORDER BY stamp DESC, bundle_id DESC LIMIT 1 OFFSET ?",
+            (map_id, tr, tc, keep - 1),
+        ).fetchone()
+        if oldest_kept is not None:
+            conn.execute(
+                "DELETE FROM observations WHERE map_id = ? AND tile_row = ? AND tile_col = ? "
+                "AND (stamp < ? OR (stamp = ? AND bundle_id < ?))",
+                (map_id, tr, tc, oldest_kept[0], oldest_kept[0], oldest_kept[1]),
+            )
+
+
+def observations(
+    conn: sqlite3.Connection, map_id: int, window: Window, *, before: str
+) -> list[Seen]:
+    """The kept observations of the window by bundles stamped before ``before``, newest first,
+    each over the whole window (cells of tiles it did not observe: neither occupied nor free)."""
+    found: dict[tuple[str, str], Seen] = {}
+    for tr, tc, in_window, in_tile in _tiles_over(window):
+        for stamp, bundle_id, robot, blob in conn.execute(
+            "SELECT stamp, bundle_id, robot, data FROM observations WHERE map_id = ? "
+            "AND tile_row = ? AND tile_col = ? AND stamp < ?",
+            (map_id, tr, tc, before),
+        ):
+            seen = found.get((stamp, bundle_id))
+            if seen is None:
+                shape = (window.rows, window.cols)
+                seen = Seen(stamp, bundle_id, robot, np.zeros(shape, bool), np.zeros(shape, bool))
+                found[(stamp, bundle_id)] = seen
+            occupied, free = unpack(blob)
+            seen.occupied[in_window] = occupied[in_tile]
+            seen.free[in_window] = free[in_tile]
+    return [found[k] for k in sorted(found, reverse=True)]

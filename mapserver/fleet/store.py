@@ -593,6 +593,14 @@ class FleetStore:
                 )
             hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
             evidence.add_deltas(self._conn, map_id, obs.tiles, hour)
+            evidence.keep_observation(
+                self._conn,
+                map_id,
+                obs.tiles,
+                stamp=stamp,
+                bundle_id=obs.bundle_id,
+                robot=obs.robot,
+            )
             outcome = self._changes.track(map_id, lattice, obs, stamp)
             self._checkpoint("evidence-applied")
             self._conn.execute(
