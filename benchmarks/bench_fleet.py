@@ -9,7 +9,13 @@ and again, ``--hours`` apart, so their changes are confirmed and published). It 
   median, p90 and max per bundle, and the tiles of evidence each bundle touched;
 * each publication of a version (a new 5000 x 3000 map written, fsynced, renamed);
 * the process's RSS after each bundle (memory bounded by what a bundle touches, not by the
-  number of bundles) and the database's size.
+  number of bundles) and the database's size (after a checkpoint: the WAL holds the last
+  transactions again), with the part the kept observations take;
+* the steady state of the kept observations (``--steady``, 70 by default): a fresh store fed
+  that many copies of the sessions with their differences left out (each tile then keeps its
+  newest 64), and then one session that reports its changes: the update step of that bundle,
+  which judges each new change on the kept observations before it. Its local maps show every
+  change, so each is counted in every kept session: the worst case, not a target.
 
 Usage::
 
@@ -21,6 +27,7 @@ Targets: the update step <= 30 ms per airport bundle, publishing a version <= 1 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import shutil
 import sys
@@ -66,6 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--bundles", type=int, default=16)
     parser.add_argument("--hours", type=float, default=7.0, help="between two sessions")
+    parser.add_argument(
+        "--steady", type=int, default=70, help="bundles before the steady-state case (0: none)"
+    )
     parser.add_argument(
         "--data", type=Path, default=Path(tempfile.gettempdir()) / "bench-speed-data"
     )
@@ -117,7 +127,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         t = time.perf_counter()
         store.rollback("terminal", 1)
         rollback_s = time.perf_counter() - t
+        store._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         db_mib = sum(p.stat().st_size for p in (work / "maps").glob("store.db*")) / 2**20
+        kept_rows, kept_bytes = store._conn.execute(
+            "SELECT count(*), coalesce(sum(length(data)), 0) FROM observations"
+        ).fetchone()
         u = np.array(updates)
         # Without the bundles that published a version (their time is the publication's).
         plain = np.array([ms for ms, v in zip(updates, published_by, strict=True) if v is None])
@@ -138,12 +152,57 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         print(
             f"memory: RSS after the first bundle {rss[0]:.0f} MiB, after the last {rss[-1]:.0f} "
-            f"MiB; database {db_mib:.1f} MiB after {args.bundles} bundles"
+            f"MiB; database {db_mib:.1f} MiB after {args.bundles} bundles (checkpointed), of "
+            f"which kept observations {kept_rows} rows, {kept_bytes / 2**20:.1f} MiB of data "
+            f"({kept_bytes / max(kept_rows, 1):.0f} B a tile and bundle)"
         )
         store.close()
+        if args.steady > 0:
+            _steady_state(data.pool, nav2, work / "steady", args.steady, t0)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0
+
+
+def _steady_state(pool: Sequence[Path], nav2: Path, work: Path, fill: int, t0: datetime) -> None:
+    """The update step of a bundle that creates changes once every tile keeps its newest
+    observations: ``fill`` copies of the pool's sessions, their differences left out, then one
+    that reports them."""
+    config = Config(maps=work / "maps", update=UpdateConfig(mode="review"))
+    store = FleetStore(work / "maps", config.update)
+    store.add_map("terminal", nav2)
+    observations = []
+    for i, source in enumerate(pool):
+        bundle = _restamped(source, work / "in" / f"s-{i}", "2026-11-21T06:00:00Z", "r1")
+        outcome = process_bundle(bundle, config)
+        assert outcome.observation is not None
+        observations.append(outcome.observation)
+    fills = []
+    for i in range(fill):
+        obs = observations[i % len(observations)]
+        stamp = (t0 + timedelta(hours=i)).isoformat().replace("+00:00", "Z")
+        copy = dataclasses.replace(
+            obs, bundle_id=f"fill-{i:03d}", fingerprint=f"fill-{i}", stamp=stamp, found=()
+        )
+        t = time.perf_counter()
+        store.apply(copy)
+        fills.append((time.perf_counter() - t) * 1000.0)
+    obs = observations[fill % len(observations)]
+    stamp = (t0 + timedelta(hours=fill)).isoformat().replace("+00:00", "Z")
+    t = time.perf_counter()
+    update = store.apply(
+        dataclasses.replace(obs, bundle_id="finder", fingerprint="finder", stamp=stamp)
+    )
+    ms = (time.perf_counter() - t) * 1000.0
+    sessions = [c.sessions for c in store.changes("terminal") if c.id in update.created]
+    print(
+        f"steady state ({fill} bundles before, kept observations per tile at most "
+        f"{fleet_evidence.KEEP_OBSERVATIONS}): those bundles' update step median "
+        f"{np.median(fills):.1f} ms; then one that creates {len(update.created)} changes: "
+        f"{ms:.1f} ms (each counted in {min(sessions, default=0)}-{max(sessions, default=0)} "
+        "sessions: the worst case, every kept session shows every change)"
+    )
+    store.close()
 
 
 if __name__ == "__main__":

@@ -124,14 +124,17 @@ def test_each_tile_keeps_the_newest_observations_and_a_reader_gets_them_newest_f
                 robot="r1",
                 keep=3,
             )
-    got = evidence.observations(conn, 1, window, before="2026-11-21T05:00:00Z")
-    assert [s.bundle_id for s in got] == ["b4", "b3"]  # b5 is not before; b1 and b2 dropped
+    got = list(evidence.observations(conn, 1, window, until="2026-11-21T04:00:00Z"))
+    assert [s.bundle_id for s in got] == ["b4", "b3"]  # b5 is after; b1 and b2 dropped
     for s in got:
         occupied, free = seen[int(s.bundle_id[1:])]
         assert np.array_equal(s.occupied, occupied) and np.array_equal(s.free, free)
         assert s.robot == "r1"
     rows = conn.execute("SELECT count(*) FROM observations").fetchone()[0]
     assert rows == 3 * 6
+    later = evidence.observations(conn, 1, window, after="2026-11-21T03:00:00Z", newest_first=False)
+    assert [s.bundle_id for s in later] == ["b4", "b5"]
     part = Window(130, 150, 10, 10)  # inside one tile: the same cells, cut
-    (newest, _) = evidence.observations(conn, 1, part, before="2026-11-21T05:00:00Z")
-    assert np.array_equal(newest.occupied, seen[4][0][30:40, 30:40])
+    newest = next(evidence.observations(conn, 1, part))
+    assert newest.bundle_id == "b5"
+    assert np.array_equal(newest.occupied, seen[5][0][30:40, 30:40])

@@ -16,10 +16,19 @@ import yaml
 
 from mapserver.config import UpdateConfig
 from mapserver.errors import MapFileError, StoreError
-from mapserver.fleet import publish
+from mapserver.fleet import evidence, publish
 from mapserver.fleet.store import FleetStore
 from mapserver.maps import FREE, OCCUPIED, load_map
-from tests.fleet_support import COLUMN, PERSON, WALL, Robot, building, cells, write_building
+from tests.fleet_support import (
+    COLUMN,
+    PERSON,
+    WALL,
+    Robot,
+    building,
+    cells,
+    stamp,
+    write_building,
+)
 
 AUTO = UpdateConfig(mode="auto")
 REVIEW = UpdateConfig(mode="review")
@@ -273,12 +282,33 @@ def test_late_bundles_cannot_confirm_what_a_newer_bundle_saw_as_before(
     for hours in (0, 8, 16):  # older, arriving last: a span of 16 h, three sessions
         update = store.apply(wall_seen(robot, hours))
         assert update.confirmed == () and update.new_version is None
+    # Each late finder's change is judged on the newer bundle's kept observation, as that
+    # bundle would have judged it had it come after them: as before, so expired.
+    assert {c.state for c in store.changes("hall")} == {"expired"}
+    # A bundle newer than that one begins a run of its own.
+    assert store.apply(wall_seen(robot, 40)).confirmed == ()
+    (change,) = [c for c in store.changes("hall") if c.state == "pending"]
+    assert (change.sessions, change.first_seen) == (1, "2026-11-23T00:00:00Z")
+
+
+@pytest.mark.parametrize("settings", [REVIEW, AUTO])
+def test_where_the_newer_observation_is_no_longer_kept_its_hour_keeps_late_bundles_waiting(
+    tmp_path: Path, hall: Path, settings: UpdateConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(evidence, "KEEP_OBSERVATIONS", 1)
+    store = new_store(tmp_path, hall, settings)
+    robot = Robot()
+    store.apply(robot.observe(30))  # the hall as the map has it
+    store.apply(robot.observe(50, view=(slice(0, 240), slice(130, 200))))  # beside the wall
+    for hours in (0, 8, 16):  # older, arriving last; the 30 h bundle's tiles are not kept
+        update = store.apply(wall_seen(robot, hours))
+        assert update.confirmed == () and update.new_version is None
     (change,) = store.changes("hall")
     assert (change.state, change.sessions) == ("pending", 3)
     (last_observed,) = store._conn.execute(
         "SELECT last_observed FROM changes WHERE id = ?", (change.id,)
     ).fetchone()
-    assert last_observed == "2026-11-22T14:00:00Z"  # the hour of the newest bundle
+    assert last_observed == "2026-11-22T14:00:00Z"  # the hour of the 30 h bundle
     # A bundle newer than that one that shows it: now it is the latest word.
     assert store.apply(wall_seen(robot, 40)).confirmed == (change.id,)
 
@@ -493,6 +523,128 @@ def test_the_count_back_stops_at_a_session_that_saw_the_area_as_before(
     # The sessions at 16 h and 24 h, not the one at 0 h: the one at 8 h saw the spot free.
     assert (change.state, change.sessions) == ("pending", 2)
     assert change.first_seen == "2026-11-22T00:00:00Z"
+
+
+def test_the_count_back_judges_as_the_live_judge_does_past_a_session_that_saw_it_off(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 54's review: judged on the change's bare box, a session that saw the new wall
+    # 0.2 m off (unclear for the live judge: occupied cells beside it) was "as before" and
+    # stopped the count.
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    store.apply(robot.observe(0, added=(WALL,)))
+    store.apply(robot.observe(8, added=(WALL,)))
+    store.apply(robot.observe(12, added=((WALL[0], slice(243, 246)),)))  # drawn 4 cells off
+    store.apply(wall_seen(robot, 24))
+    (change,) = store.changes("hall")
+    assert change.sessions == 3 and change.bundles == ["r1-001", "r1-002", "r1-004"]
+
+
+def test_a_late_bundle_from_before_a_gap_does_not_join_the_run_after_it(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 54's review: the person at 0 h, gone at 8 h, someone there again at 16 and 24 h;
+    # the 0 h bundle arriving last was counted, and the person published.
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    person = {"added": (PERSON,)}
+    store.apply(robot.observe(8))
+    store.apply(robot.observe(16, **person))  # type: ignore[arg-type]
+    store.apply(robot.observe(24, found=(("added", PERSON),), **person))  # type: ignore[arg-type]
+    late = store.apply(robot.observe(0, **person))  # type: ignore[arg-type]
+    assert late.new_version is None
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions, change.first_seen) == ("pending", 2, stamp(16))
+
+
+def test_a_late_bundle_that_saw_a_gap_in_a_confirmed_run_sends_it_back_to_review_pending(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    person = {"added": (PERSON,)}
+    store.apply(robot.observe(0, **person))  # type: ignore[arg-type]
+    store.apply(robot.observe(16, **person))  # type: ignore[arg-type]
+    update = store.apply(robot.observe(24, found=(("added", PERSON),), **person))  # type: ignore[arg-type]
+    assert update.confirmed != ()  # 0, 16 and 24 h: confirmed, awaiting review
+    store.apply(robot.observe(8))  # late: the spot was free at 8 h
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions, change.first_seen) == ("pending", 2, stamp(16))
+
+
+def test_a_session_stamped_in_the_same_second_counts_in_either_order(
+    tmp_path: Path, hall: Path
+) -> None:
+    for first_reported in (True, False):
+        root = tmp_path / str(first_reported)
+        store = new_store(root, hall)
+        r1, r2 = Robot("r1"), Robot("r2")
+        reported, shown = wall_seen(r1, 10), r2.observe(10, added=(WALL,))
+        for obs in (reported, shown) if first_reported else (shown, reported):
+            store.apply(obs)
+        (change,) = store.changes("hall")
+        assert change.sessions == 2 and change.robots == ["r1", "r2"]
+        store.close()
+
+
+def test_a_late_finder_is_judged_by_the_newer_bundles_of_the_same_hour(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 54's review: a cart shown at 0 and 8 h, reported by a bundle of 16:10 that
+    # arrived after one of 16:40 had seen the spot free: the count back confirmed and
+    # published it (the evidence keeps only the hour a cell was last seen).
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    cart = {"added": (PERSON,)}
+    store.apply(robot.observe(0, **cart))  # type: ignore[arg-type]
+    store.apply(robot.observe(8, **cart))  # type: ignore[arg-type]
+    store.apply(robot.observe(16 + 40 / 60))  # gone
+    late = store.apply(robot.observe(16 + 10 / 60, found=(("added", PERSON),), **cart))  # type: ignore[arg-type]
+    assert late.new_version is None and late.expired == late.created
+    (change,) = store.changes("hall")
+    assert change.state == "expired" and change.sessions == 3
+
+
+def test_a_bundle_id_used_again_after_retention_is_another_session(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    for hours in (0, 8, 16):
+        store.apply(wall_seen(robot, hours, bundle_id="run-0001"))
+    (change,) = store.changes("hall")
+    assert (change.state, change.sessions) == ("confirmed", 3)
+    assert change.bundles == ["run-0001"] * 3
+
+
+def test_a_store_migrated_by_another_process_meanwhile_is_not_migrated_twice(
+    tmp_path: Path, hall: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Session 54's review: the daemon and the web unit starting together after an upgrade:
+    # both read the old schema version, the second to migrate failed ("table observations
+    # already exists").
+    from mapserver.fleet import db
+
+    new_store(tmp_path, hall).close()
+    conn = sqlite3.connect(tmp_path / "maps" / "store.db")
+    conn.execute("DROP TABLE observations")
+    conn.execute("PRAGMA user_version = 3")
+    conn.commit()
+    conn.close()
+    real = db.transaction
+    raced = []
+
+    def other_process_first(c: sqlite3.Connection):  # type: ignore[no-untyped-def]
+        if not raced:
+            raced.append(True)
+            db.connect(tmp_path / "maps", create=False).close()  # migrates it, meanwhile
+        return real(c)
+
+    monkeypatch.setattr(db, "transaction", other_process_first)
+    conn = db.connect(tmp_path / "maps", create=False)
+    assert raced and conn.execute("PRAGMA user_version").fetchone()[0] == db.SCHEMA_VERSION
+    conn.close()
 
 
 def test_two_reviewers_approving_at_once_get_two_whole_versions(tmp_path: Path, hall: Path) -> None:

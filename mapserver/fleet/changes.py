@@ -152,36 +152,26 @@ class ChangeTracker:
                 tolerance_px=tol,
             )
             if verdict == "as_before":
-                self._dirty.add(c.id)
-                later = stamp >= c.last_observed
-                self._conn.execute(
-                    "UPDATE changes SET contradicted = contradicted + ?, "
-                    "last_observed = CASE WHEN ? THEN ? ELSE last_observed END, "
-                    "latest_shows = CASE WHEN ? THEN 0 ELSE latest_shows END, "
-                    "state = CASE WHEN ? THEN 'expired' ELSE state END, "
-                    "note = CASE WHEN ? THEN ? ELSE note END, updated_at = ? WHERE id = ?",
-                    (
-                        int(stamp > c.first_seen),
-                        later,
-                        stamp,
-                        later,
-                        later,
-                        later,
-                        f"seen as before by {obs.bundle_id} ({obs.robot}, {stamp})",
-                        now_utc(),
-                        c.id,
-                    ),
-                )
-                if later:
+                if self._seen_as_before(c.id, stamp, obs.bundle_id, obs.robot, lattice):
                     expired.append(c.id)
             elif verdict == "shows":
                 # The local map shows it though the bundle's differences did not report it (too
-                # few cells this time, an edge of the observed area): a session that saw it.
+                # few cells this time, an edge of the observed area): a session that saw it,
+                # unless it is older than the change's run and a kept bundle stamped between
+                # them saw the area as before (that one began the run: in stamp order this
+                # bundle would have been counted on an earlier change, since expired).
+                if stamp < c.first_seen and self._as_before_between(
+                    map_id, lattice, c.kind, c.cells, stamp, c.first_seen
+                ):
+                    continue
                 seen = tracker.shown_cells(
                     c.kind, c.cells, lattice, win, obs.occupied, obs.free, tolerance_px=tol
                 )
                 self._support(c, seen, obs, stamp, lattice)
                 shown.append(c.id)
+        for cid in created:
+            if self._state(cid) == "expired":
+                expired.append(cid)
         # 3. Pending changes nobody has observed for long expire: long before this bundle, or
         # before now when it is stamped ahead of this server's clock (a robot's clock weeks
         # ahead would expire every pending change of the map).
@@ -334,7 +324,9 @@ class ChangeTracker:
             (map_id, kind, stamp, stamp, stamp, *_shape(cells, lattice), now_utc()),
         )
         cid = int(cur.lastrowid or 0)
-        later = self._observed_after(map_id, lattice, cells, stamp)
+        window = self._judge_window(cells, lattice)
+        counters = evidence.read_window(self._conn, map_id, window)
+        later = self._observed_after(lattice, window, counters, cells, stamp)
         if later is not None:
             # A late bundle: one stamped after it already observed these cells (and found no
             # such change there, or this one would support it). Seen, not the latest to say so:
@@ -351,49 +343,212 @@ class ChangeTracker:
             "INSERT INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
             (cid, obs.bundle_id, obs.robot, stamp),
         )
-        self._count_earlier(map_id, lattice, cid, kind, cells, stamp)
+        self._judge_kept(
+            map_id,
+            lattice,
+            cid,
+            kind,
+            cells,
+            stamp,
+            obs.bundle_id,
+            earlier=self._shown_before(kind, cells, lattice, window, counters),
+        )
         return cid
 
-    def _count_earlier(
-        self, map_id: int, lattice: Lattice, cid: int, kind: str, cells: IntArray, stamp: str
-    ) -> None:
-        """Count a new change in the earlier sessions whose local maps showed it though their
-        differences did not report it (too few cells that time, a fold check, a drift): the
-        sessions of contract section 7 are the bundles whose local map shows the change, not
-        only those that found it. Back from ``stamp``, newest first, each kept observation is
-        judged as a later one would be; the first that shows the area as before ends the count
-        (the change began after it: the box not yet there, the door still shut)."""
-        row0, col0, last_row, last_col = _box(cells, lattice, 0)
-        window = Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
-        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
-        counted = False
-        for seen in evidence.observations(self._conn, map_id, window, before=stamp):
-            verdict = tracker.judge(
-                kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
-            )
-            if verdict == "as_before":
-                break
-            if verdict != "shows":
-                continue
-            shown = tracker.shown_cells(
-                kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
-            )
-            counted |= self._sighting(cid, seen.bundle_id, seen.robot, seen.stamp, shown)
-        if counted:
-            self._refresh(cid, lattice)
+    @staticmethod
+    def _shown_before(
+        kind: str,
+        cells: IntArray,
+        lattice: Lattice,
+        window: Window,
+        counters: evidence.TileEvidence,
+    ) -> bool:
+        """Whether a bundle besides the finder may have shown the change, by the evidence's
+        counters (the finder counted in them): an added obstacle's cells, or their neighbours,
+        seen occupied twice; a removed structure's cells seen free twice. When not, no kept
+        observation needs reading back."""
+        if kind == "added":
+            rows, cols, inside = window.local(lattice, tracker.dilate(cells, lattice, 1))
+            counts = counters.occupied
+        else:
+            rows, cols, inside = window.local(lattice, cells)
+            counts = counters.free
+        return bool((counts[rows[inside], cols[inside]] >= 2).any())
 
+    def _judge_window(self, cells: IntArray, lattice: Lattice) -> Window:
+        """The window a change's cells are judged on in a kept observation: their box grown by
+        the judging tolerance and the presence neighbour (as the live judge sees the whole
+        bundle), within the map."""
+        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
+        row0, col0, last_row, last_col = _box(cells, lattice, tol + 1)
+        row0, col0 = max(row0, 0), max(col0, 0)
+        last_row, last_col = min(last_row, lattice.height - 1), min(last_col, lattice.width - 1)
+        return Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
+
+    def _judge(
+        self, kind: str, cells: IntArray, lattice: Lattice, window: Window, seen: evidence.Seen
+    ) -> tuple[tracker.Verdict, IntArray]:
+        """A kept observation's verdict on a change's cells, and the cells it shows changed."""
+        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
+        verdict = tracker.judge(
+            kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+        )
+        if verdict != "shows":
+            return verdict, np.zeros(0, np.int64)
+        return verdict, tracker.shown_cells(
+            kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+        )
+
+    def _judge_kept(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        cid: int,
+        kind: str,
+        cells: IntArray,
+        stamp: str,
+        finder: str,
+        *,
+        earlier: bool = True,
+    ) -> None:
+        """Judge a new change on the kept observations of the bundles applied before its
+        finder, as if they had come after it: the sessions of contract section 7 are the
+        bundles whose local map shows a change, not only those that reported it.
+
+        Back from ``stamp``, newest first: each that shows it is a session (too few cells that
+        time, a fold check, a drift kept its differences from reporting it); the first that
+        saw the area as before ends the count (the change began after it: the box not yet
+        there, the door still shut; one of the same second cannot tell and is passed over).
+        Then the bundles stamped after the finder (it arrived late: a daemon's workers finish
+        out of order, an upload waits a day), oldest first, as the live judge would have taken
+        them: a session that shows it, or one that saw it as before, which expires it."""
+        window = self._judge_window(cells, lattice)
+        shown = []
+        kept = evidence.observations(self._conn, map_id, window, until=stamp) if earlier else ()
+        for seen in kept:
+            if seen.bundle_id == finder and seen.stamp == stamp:
+                continue
+            verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
+            if verdict == "as_before" and seen.stamp < stamp:
+                break
+            if verdict == "shows":
+                shown.append((seen.bundle_id, seen.robot, seen.stamp, cells_shown))
+        if self._sightings(cid, shown):
+            self._refresh(cid, lattice)
+        for seen in evidence.observations(
+            self._conn, map_id, window, after=stamp, newest_first=False
+        ):
+            verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
+            if verdict == "as_before":
+                self._seen_as_before(cid, seen.stamp, seen.bundle_id, seen.robot, lattice)
+                break
+            if verdict == "shows" and self._sighting(
+                cid, seen.bundle_id, seen.robot, seen.stamp, cells_shown
+            ):
+                self._refresh(cid, lattice, stamp_shown=seen.stamp)
+
+    def _as_before_between(
+        self, map_id: int, lattice: Lattice, kind: str, cells: IntArray, after: str, before: str
+    ) -> bool:
+        """Whether a kept observation stamped after ``after`` and before ``before`` saw the
+        change's area as before."""
+        window = self._judge_window(cells, lattice)
+        for seen in evidence.observations(
+            self._conn, map_id, window, after=after, newest_first=False
+        ):
+            if seen.stamp >= before:
+                return False
+            if self._judge(kind, cells, lattice, window, seen)[0] == "as_before":
+                return True
+        return False
+
+    def _seen_as_before(
+        self, cid: int, stamp: str, bundle_id: str, robot: str, lattice: Lattice
+    ) -> bool:
+        """A bundle saw a pending or confirmed change's area as before: ``contradicted`` (when
+        after its first sighting). The latest word on it expires it. A late one inside the
+        change's run ends the part of the run before it (in stamp order, an earlier change it
+        expired): those sightings no longer count, and a confirmed change that no longer meets
+        the rule is pending again; with no sighting after it, it expires the change. Returns
+        whether the change expired."""
+        first_seen, last_observed = self._conn.execute(
+            "SELECT first_seen, last_observed FROM changes WHERE id = ?", (cid,)
+        ).fetchone()
+        self._dirty.add(cid)
+        note = f"seen as before by {bundle_id} ({robot}, {stamp})"
+        expire = bool(stamp >= last_observed)
+        if not expire and stamp > first_seen:
+            after = self._conn.execute(
+                "SELECT count(*) FROM sightings WHERE change_id = ? AND stamp > ?", (cid, stamp)
+            ).fetchone()[0]
+            if after:
+                self._conn.execute(
+                    "DELETE FROM sightings WHERE change_id = ? AND stamp < ?", (cid, stamp)
+                )
+                self._refresh(cid, lattice)
+                self._recheck(cid)
+            else:
+                expire = True
+        self._conn.execute(
+            "UPDATE changes SET contradicted = contradicted + ?, "
+            "last_observed = CASE WHEN ? THEN ? ELSE last_observed END, "
+            "latest_shows = CASE WHEN ? THEN 0 ELSE latest_shows END, "
+            "state = CASE WHEN ? THEN 'expired' ELSE state END, "
+            "note = CASE WHEN ? THEN ? ELSE note END, updated_at = ? WHERE id = ?",
+            (
+                int(stamp > first_seen),
+                stamp >= last_observed,
+                stamp,
+                stamp >= last_observed,
+                expire,
+                expire,
+                note,
+                now_utc(),
+                cid,
+            ),
+        )
+        return expire
+
+    def _recheck(self, cid: int) -> None:
+        """A confirmed change (awaiting review) whose sessions no longer meet the persistence
+        rule goes back to pending."""
+        row = self._conn.execute(
+            "SELECT state, sessions, first_seen, last_seen, latest_shows FROM changes WHERE id = ?",
+            (cid,),
+        ).fetchone()
+        if row[0] == "confirmed" and not tracker.confirmed(
+            self.rule,
+            sessions=row[1],
+            first_seen=row[2],
+            last_seen=row[3],
+            latest_shows=bool(row[4]),
+        ):
+            self._conn.execute(
+                "UPDATE changes SET state = 'pending', updated_at = ? WHERE id = ?",
+                (now_utc(), cid),
+            )
+
+    def _state(self, cid: int) -> str:
+        return str(
+            self._conn.execute("SELECT state FROM changes WHERE id = ?", (cid,)).fetchone()[0]
+        )
+
+    @staticmethod
     def _observed_after(
-        self, map_id: int, lattice: Lattice, cells: IntArray, stamp: str
+        lattice: Lattice,
+        window: Window,
+        counters: evidence.TileEvidence,
+        cells: IntArray,
+        stamp: str,
     ) -> str | None:
         """When a bundle stamped in a later hour than ``stamp`` last observed any of ``cells``
         (the start of that hour: the evidence keeps hours), or None. Bundles are applied as
         they arrive; the fleet counts them by stamp, and a late one must not be the latest
         word on what a newer one saw (a daemon's two workers finish out of order, an upload
-        waits a day). Within one hour it cannot tell."""
-        row0, col0, last_row, last_col = _box(cells, lattice, 0)
-        window = Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
+        waits a day). Within one hour it cannot tell; the kept observations, where they are
+        still kept, tell exactly (:meth:`_judge_kept`)."""
         rows, cols, _ = window.local(lattice, cells)
-        seen = evidence.read_window(self._conn, map_id, window).last_hour[rows, cols]
+        seen = counters.last_hour[rows, cols]
         hour = int(tracker.parse_stamp(stamp).timestamp() // 3600)
         latest = int(seen.max()) if len(seen) else 0
         if latest <= hour:
@@ -431,18 +586,28 @@ class ChangeTracker:
     def _sighting(self, cid: int, bundle_id: str, robot: str, stamp: str, cells: IntArray) -> bool:
         """Count one bundle's sighting of a change and the cells it showed; False when that
         bundle was counted on it already (merged changes)."""
-        cur = self._conn.execute(
-            "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) VALUES (?, ?, ?, ?)",
-            (cid, bundle_id, robot, stamp),
-        )
-        if cur.rowcount == 0:
-            return False
-        self._conn.executemany(
-            "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, 1) "
-            "ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + 1",
-            ((cid, int(x)) for x in cells),
-        )
-        return True
+        return self._sightings(cid, [(bundle_id, robot, stamp, cells)]) > 0
+
+    def _sightings(self, cid: int, seen: Sequence[tuple[str, str, str, IntArray]]) -> int:
+        """Count bundles' sightings of a change, ``(bundle_id, robot, stamp, cells shown)``
+        each, and their cells' hits in one write; returns how many were new."""
+        shown = []
+        for bundle_id, robot, stamp, cells in seen:
+            cur = self._conn.execute(
+                "INSERT OR IGNORE INTO sightings (change_id, bundle_id, robot, stamp) "
+                "VALUES (?, ?, ?, ?)",
+                (cid, bundle_id, robot, stamp),
+            )
+            if cur.rowcount:
+                shown.append(cells)
+        if shown:
+            cells, hits = np.unique(np.concatenate(shown), return_counts=True)
+            self._conn.executemany(
+                "INSERT INTO change_cells (change_id, cell, hits) VALUES (?, ?, ?) "
+                "ON CONFLICT (change_id, cell) DO UPDATE SET hits = hits + excluded.hits",
+                ((cid, int(c), int(n)) for c, n in zip(cells, hits, strict=True)),
+            )
+        return len(shown)
 
     def _merge(self, target: _Change, other: _Change) -> None:
         """Fold ``other`` into ``target`` (one thing seen in two parts): sightings, cells and

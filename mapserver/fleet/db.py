@@ -133,8 +133,31 @@ MIGRATIONS: tuple[str, ...] = (
     ) WHERE note LIKE 'rollback to version %';
     """,
     # 4: the latest bundles' observations, tile by tile, with who made them and when: a change
-    # found late is counted in the earlier sessions whose local maps showed it.
+    # found late is counted in the earlier sessions whose local maps showed it. And a sighting is
+    # a bundle id at a stamp: an id freed by retention and used again is another session. (The
+    # key's columns come first: SQLite 3.40's integrity check reports a WITHOUT ROWID table's
+    # NOT NULL column after a key column as NULL.)
     """
+    CREATE TABLE sightings_by_stamp (
+        change_id INTEGER NOT NULL,
+        bundle_id TEXT NOT NULL,
+        stamp TEXT NOT NULL,
+        robot TEXT NOT NULL,
+        PRIMARY KEY (change_id, bundle_id, stamp)
+    ) WITHOUT ROWID;
+    INSERT INTO sightings_by_stamp (change_id, bundle_id, stamp, robot)
+        SELECT change_id, bundle_id, stamp, robot FROM sightings;
+    DROP TABLE sightings;
+    CREATE TABLE sightings (
+        change_id INTEGER NOT NULL REFERENCES changes(id) ON DELETE CASCADE,
+        bundle_id TEXT NOT NULL,
+        stamp TEXT NOT NULL,
+        robot TEXT NOT NULL,
+        PRIMARY KEY (change_id, bundle_id, stamp)
+    ) WITHOUT ROWID;
+    INSERT INTO sightings (change_id, bundle_id, stamp, robot)
+        SELECT change_id, bundle_id, stamp, robot FROM sightings_by_stamp;
+    DROP TABLE sightings_by_stamp;
     CREATE TABLE observations (
         map_id INTEGER NOT NULL REFERENCES maps(id),
         tile_row INTEGER NOT NULL,
@@ -211,6 +234,9 @@ def connect(
         )
     if version < SCHEMA_VERSION:
         with transaction(conn):
+            # Read again under the write lock: another process (the daemon and the web unit
+            # started together after an upgrade) may have migrated it meanwhile.
+            version = conn.execute("PRAGMA user_version").fetchone()[0]
             for step in range(version, SCHEMA_VERSION):
                 for statement in _statements(MIGRATIONS[step]):
                     conn.execute(statement)

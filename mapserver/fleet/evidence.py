@@ -82,20 +82,25 @@ class TileEvidence:
 Slices = tuple[slice, slice]
 
 
+def _overlap(window: Window, tr: int, tc: int) -> tuple[Slices, Slices]:
+    """Where tile ``(tr, tc)`` overlaps the window: slices of a (window.rows, window.cols)
+    array and of a (TILE, TILE) one."""
+    r0, c0 = max(tr * TILE, window.row0), max(tc * TILE, window.col0)
+    r1 = min((tr + 1) * TILE, window.row0 + window.rows)
+    c1 = min((tc + 1) * TILE, window.col0 + window.cols)
+    in_window = (
+        slice(r0 - window.row0, r1 - window.row0),
+        slice(c0 - window.col0, c1 - window.col0),
+    )
+    return in_window, (slice(r0 - tr * TILE, r1 - tr * TILE), slice(c0 - tc * TILE, c1 - tc * TILE))
+
+
 def _tiles_over(window: Window) -> Iterator[tuple[int, int, Slices, Slices]]:
     """``(tile_row, tile_col, in_window, in_tile)`` of every tile the window overlaps: the
     overlap as slices of a (window.rows, window.cols) array and of a (TILE, TILE) one."""
     for tr in range(window.row0 // TILE, (window.row0 + window.rows - 1) // TILE + 1):
         for tc in range(window.col0 // TILE, (window.col0 + window.cols - 1) // TILE + 1):
-            r0, c0 = max(tr * TILE, window.row0), max(tc * TILE, window.col0)
-            r1 = min((tr + 1) * TILE, window.row0 + window.rows)
-            c1 = min((tc + 1) * TILE, window.col0 + window.cols)
-            in_window = (
-                slice(r0 - window.row0, r1 - window.row0),
-                slice(c0 - window.col0, c1 - window.col0),
-            )
-            in_tile = (slice(r0 - tr * TILE, r1 - tr * TILE), slice(c0 - tc * TILE, c1 - tc * TILE))
-            yield tr, tc, in_window, in_tile
+            yield tr, tc, *_overlap(window, tr, tc)
 
 
 def pack_tiles(
@@ -214,9 +219,11 @@ def read_window(conn: sqlite3.Connection, map_id: int, window: Window) -> TileEv
 
 
 # How many bundles' observations each tile keeps (the newest, by stamp): what a change found
-# late can be counted in. A tile on a busy route sees many bundles a day; the sessions a change
-# needs to be confirmed are few (update.confirm_sessions), and the ones its first finder
-# missed come just before it.
+# late is judged on, back and forth from its finder. About 300 bytes a tile and bundle on the
+# airport of bench_fleet.py (measured after a checkpoint): 64 x ~300 B x the map's tiles, under
+# 20 MiB for a 5000 x 3000 map. On a busy tile 64 bundles may span less than
+# update.confirm_span_hours (ten robots passing every hour: 6 hours); the sessions a finder's
+# predecessors missed are the latest ones, and those are kept.
 KEEP_OBSERVATIONS = 64
 
 
@@ -239,10 +246,14 @@ def keep_observation(
     stamp: str,
     bundle_id: str,
     robot: str,
-    keep: int = KEEP_OBSERVATIONS,
+    keep: int | None = None,
 ) -> None:
     """Keep one bundle's packed tiles with its stamp, bundle id and robot, inside the caller's
-    transaction; each tile keeps the newest ``keep`` bundles' observations."""
+    transaction; each tile keeps the newest ``keep`` (default :data:`KEEP_OBSERVATIONS`)
+    bundles' observations, by stamp, then bundle id."""
+    keep = KEEP_OBSERVATIONS if keep is None else keep
+    if keep < 1:
+        raise ValueError(f"keep must be >= 1, got {keep}")
     for tr, tc, blob in tiles:
         conn.execute(
             "INSERT OR REPLACE INTO observations "
@@ -264,23 +275,44 @@ def keep_observation(
 
 
 def observations(
-    conn: sqlite3.Connection, map_id: int, window: Window, *, before: str
-) -> list[Seen]:
-    """The kept observations of the window by bundles stamped before ``before``, newest first,
-    each over the whole window (cells of tiles it did not observe: neither occupied nor free)."""
-    found: dict[tuple[str, str], Seen] = {}
-    for tr, tc, in_window, in_tile in _tiles_over(window):
-        for stamp, bundle_id, robot, blob in conn.execute(
-            "SELECT stamp, bundle_id, robot, data FROM observations WHERE map_id = ? "
-            "AND tile_row = ? AND tile_col = ? AND stamp < ?",
-            (map_id, tr, tc, before),
-        ):
-            seen = found.get((stamp, bundle_id))
-            if seen is None:
-                shape = (window.rows, window.cols)
-                seen = Seen(stamp, bundle_id, robot, np.zeros(shape, bool), np.zeros(shape, bool))
-                found[(stamp, bundle_id)] = seen
-            occupied, free = unpack(blob)
-            seen.occupied[in_window] = occupied[in_tile]
-            seen.free[in_window] = free[in_tile]
-    return [found[k] for k in sorted(found, reverse=True)]
+    conn: sqlite3.Connection,
+    map_id: int,
+    window: Window,
+    *,
+    until: str | None = None,
+    after: str | None = None,
+    newest_first: bool = True,
+) -> Iterator[Seen]:
+    """The kept observations of the window, one bundle at a time: those stamped at or before
+    ``until`` and after ``after`` (None: no bound), newest first or oldest first, each over the
+    whole window (cells of tiles it did not observe: neither occupied nor free). Read as the
+    caller goes: a caller that stops early reads no further."""
+    tr0, tc0 = window.row0 // TILE, window.col0 // TILE
+    tr1 = (window.row0 + window.rows - 1) // TILE
+    tc1 = (window.col0 + window.cols - 1) // TILE
+    order = "DESC" if newest_first else "ASC"
+    sql = (
+        "SELECT stamp, bundle_id, robot, tile_row, tile_col, data FROM observations "
+        "WHERE map_id = ? AND tile_row BETWEEN ? AND ? AND tile_col BETWEEN ? AND ?"
+    )
+    args: list[object] = [map_id, tr0, tr1, tc0, tc1]
+    if until is not None:
+        sql += " AND stamp <= ?"
+        args.append(until)
+    if after is not None:
+        sql += " AND stamp > ?"
+        args.append(after)
+    sql += f" ORDER BY stamp {order}, bundle_id {order}"
+    shape = (window.rows, window.cols)
+    current: Seen | None = None
+    for stamp, bundle_id, robot, tr, tc, blob in conn.execute(sql, args):
+        if current is None or (current.stamp, current.bundle_id) != (stamp, bundle_id):
+            if current is not None:
+                yield current
+            current = Seen(stamp, bundle_id, robot, np.zeros(shape, bool), np.zeros(shape, bool))
+        in_window, in_tile = _overlap(window, tr, tc)
+        occupied, free = unpack(blob)
+        current.occupied[in_window] = occupied[in_tile]
+        current.free[in_window] = free[in_tile]
+    if current is not None:
+        yield current

@@ -6,6 +6,7 @@ Cells are flat indices on a stored map's :class:`~mapserver.fleet.lattice.Lattic
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from datetime import datetime
@@ -19,12 +20,17 @@ from mapserver.fleet.lattice import IntArray, Lattice, Window
 Verdict = Literal["unseen", "shows", "as_before", "unclear"]
 
 
+@functools.lru_cache(maxsize=16)
 def disk_offsets(radius_px: int) -> tuple[IntArray, IntArray]:
-    """(d_row, d_col) of every cell within ``radius_px`` of a cell, itself included."""
+    """(d_row, d_col) of every cell within ``radius_px`` of a cell, itself included (read-only
+    arrays, shared between calls)."""
     r = max(0, int(radius_px))
     dr, dc = np.mgrid[-r : r + 1, -r : r + 1]
     keep = dr**2 + dc**2 <= r * r
-    return dr[keep].astype(np.int64), dc[keep].astype(np.int64)
+    out = dr[keep].astype(np.int64), dc[keep].astype(np.int64)
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def dilate(cells: IntArray, lattice: Lattice, radius_px: int) -> IntArray:
@@ -125,12 +131,13 @@ def _near_occupied(
 ) -> NDArray[np.bool_]:
     """For each cell, whether an occupied cell of the window lies within ``radius_px``."""
     h, w = occupied.shape
-    found = np.zeros(len(rows), bool)
-    for dr, dc in zip(*disk_offsets(radius_px), strict=True):
-        r, c = rows + dr, cols + dc
-        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        found[ok] |= occupied[r[ok], c[ok]]
-    return found
+    dr, dc = disk_offsets(radius_px)
+    r = rows[:, None] + dr[None, :]
+    c = cols[:, None] + dc[None, :]
+    ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    near = np.zeros(r.shape, bool)
+    near[ok] = occupied[r[ok], c[ok]]
+    return np.asarray(near.any(axis=1))
 
 
 @dataclass(frozen=True)
