@@ -455,11 +455,12 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
         if created:  # leave nothing half-made behind
             shutil.rmtree(out_dir, ignore_errors=True)
         raise
-    commands = upload_commands(str(args.output), args.upload_to)
+    maps_call, manifest_call = upload_commands(str(args.output), args.upload_to)
     sys.stdout.write(
         f"wrote bundle {bundle_id} in {out_dir.resolve()} ({len(files) + 1} files)\n"
-        "upload it with two rsync calls, the manifest last (README: Deploying):\n"
-        + "".join(f"  {shlex.join(command)}\n" for command in commands)
+        "upload it with two rsync calls, the manifest last and only once the maps arrived "
+        "(README: Deploying):\n"
+        f"  {shlex.join(maps_call)} \\\n    && {shlex.join(manifest_call)}\n"
     )
     return 0
 

@@ -308,6 +308,8 @@ class Service:
                 "archive": self._config.archive,
                 "failed": self._config.failed,
             }
+            if self._config.maps is not None:
+                folders["maps"] = self._config.maps
             missing = [f"{name} {path}" for name, path in folders.items() if not path.exists()]
             with daemon_lock(self._config), contextlib.ExitStack() as self._exits:
                 if missing:  # a misspelt path in the configuration must not pass unseen

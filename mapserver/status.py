@@ -23,7 +23,7 @@ import yaml
 from mapserver.config import Config
 from mapserver.faults import format_size
 from mapserver.lock import daemon_pid
-from mapserver.outbox import ERROR, RESULT, TAKEN
+from mapserver.outbox import RESULT, TAKEN, daemon_error
 
 STATUS_NAME = ".mapserver.status"
 DAY_S = 24 * 3600.0
@@ -153,8 +153,8 @@ class Report:
                 out.append(f"  {s.name:<8} {s.path!s:<{width}}  not there")
                 continue
             line = (
-                f"  {s.name:<8} {s.path!s:<{width}}  {_gib(s.free_bytes)} free of "
-                f"{_gib(s.total_bytes)} ({100 * s.free_bytes / max(s.total_bytes, 1):.0f}%)"
+                f"  {s.name:<8} {s.path!s:<{width}}  {format_size(s.free_bytes)} free of "
+                f"{format_size(s.total_bytes)} ({100 * s.free_bytes / max(s.total_bytes, 1):.0f}%)"
             )
             if s.device in seen:
                 line += ", the same filesystem"
@@ -185,7 +185,7 @@ def report(config: Config, *, now: float | None = None, recent: bool = True) -> 
     if recent:
         since = now - DAY_S
         out.results_24h = sum(1 for _ in _recent(config.outbox, RESULT, since))
-        failed = sorted(_recent(config.failed, ERROR, since), key=lambda item: -item[1])
+        failed = sorted(_recent_failures(config.failed, since), key=lambda item: -item[1])
         out.failed_24h = len(failed)
         out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
     folders = {name: getattr(config, name) for name in ("inbox", "outbox", "archive", "failed")}
@@ -207,8 +207,9 @@ def _health_lines(degraded: dict[str, Any] | None) -> list[str]:
     if degraded is None:
         return ["health:    ok"]
     waiting = degraded.get("waiting", 0)
+    wait = f"{waiting} bundle waits" if waiting == 1 else f"{waiting} bundles wait"
     out = [
-        f"health:    DEGRADED since {degraded.get('since', '?')}: {waiting} bundles wait (not "
+        f"health:    DEGRADED since {degraded.get('since', '?')}: {wait} (not "
         "failed: they are done once the cause goes)"
     ]
     for fault in degraded.get("faults") or []:
@@ -241,6 +242,22 @@ def _recent(folder: Path, name: str, since: float) -> list[tuple[Path, float]]:
     return found
 
 
+def _recent_failures(folder: Path, since: float) -> list[tuple[Path, float]]:
+    """The daemon's error document of each ``failed/<id>/`` written since ``since``, with
+    that time: ``mapserver-error.yaml`` when the bundle brought an ``error.yaml`` of its own
+    (:func:`mapserver.outbox.daemon_error`), whose time may be a robot's (rsync -a keeps it)."""
+    found = []
+    for bundle_id in _visible(folder):
+        path = daemon_error(folder / bundle_id)
+        if path is None:
+            continue
+        with contextlib.suppress(OSError):
+            mtime = path.stat().st_mtime
+            if mtime >= since:
+                found.append((path, mtime))
+    return found
+
+
 def _failure(error_yaml: Path) -> Failure:
     try:
         document = yaml.safe_load(error_yaml.read_text(encoding="utf-8"))
@@ -252,12 +269,8 @@ def _failure(error_yaml: Path) -> Failure:
         error_yaml.parent.name,
         str(document.get("failed_at", "?")),
         str(document.get("stage", "?")),
-        str(document.get("reason", "(unreadable error.yaml)")),
+        str(document.get("reason", f"(unreadable {error_yaml.name})")),
     )
-
-
-def _gib(n: int) -> str:
-    return f"{n / 2**30:.1f} GiB"
 
 
 def _age(stamp: object, now: float) -> str:

@@ -78,11 +78,12 @@ def test_bundle_written_in_the_current_folder_uploads_into_a_folder_named_by_its
     args = ["bundle", "--slam-map", str(slam), "--nav2-map", str(nav2), "--nav2-pose", "5,5,0"]
     assert main([*args, "--slam-pose", "5,5,0", "-o", ".", "--upload-to", "/srv/inbox/"]) == 0
     out = capsys.readouterr().out.splitlines()
-    lines = [line.split() for line in out if line.strip().startswith("rsync")]
+    lines = [line.split() for line in out if line.strip().startswith(("rsync", "&& rsync"))]
     assert [line[-2:] for line in lines] == [
-        ["./", "/srv/inbox/run-0053/"],
+        ["/srv/inbox/run-0053/", "\\"],
         ["./bundle.yaml", "/srv/inbox/run-0053/"],
     ]
+    assert lines[0][-3] == "./"
 
 
 def test_bundle_reads_a_yaml_trajectory_and_leaves_nav2_map_out(

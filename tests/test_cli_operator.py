@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -303,6 +304,27 @@ def test_status_without_a_daemon_exits_3_and_counts_from_the_folders(
     ]
     assert lines[-1].startswith(f"  maps     {tmp_path / 'maps'}  ") and "GiB free" in lines[-1]
     assert lines[-3] == f"  archive  {tmp_path / 'archive'}  not there"
+
+
+def test_status_lists_a_failure_by_the_daemons_error_document_not_the_bundles_own(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bundle that brought an error.yaml of its own (an old mtime, as rsync -a keeps it): the
+    daemon's document is mapserver-error.yaml, and status read the bundle's (session 54's
+    review: "failed run-0043 at ?, stage ?: (unreadable error.yaml)", or not listed at all)."""
+    config_file = tmp_path / "mapserver.yaml"
+    config_file.write_text("{}\n")
+    failed = tmp_path / "failed" / "run-0043"
+    failed.mkdir(parents=True)
+    (failed / "error.yaml").write_text("mine: 1\n")
+    os.utime(failed / "error.yaml", (0, 0))
+    (failed / "mapserver-error.yaml").write_text(
+        "failed_at: '2026-12-07T09:00:00Z'\nstage: bundle\nreason: 'slam_map.pgm: checksum'\n"
+    )
+    assert main(["status", "--config", str(config_file)]) == 3
+    out = capsys.readouterr().out
+    assert "last 24 h: 0 results, 1 failed" in out
+    assert "failed run-0043 at 2026-12-07T09:00:00Z, stage bundle: slam_map.pgm: checksum" in out
 
 
 def test_process_never_replaces_the_bundle_itself_with_its_result(

@@ -59,3 +59,15 @@ def test_a_checksum_mismatch_and_a_folder_of_bundles_are_failed_within_seconds(
         "upload each bundle folder directly into the inbox"
     )
     assert (dirs["failed"] / "runs" / "run-1" / "bundle.yaml").is_file()  # kept as it came
+
+
+def test_the_daemon_names_the_map_store_folder_it_created(tmp_path: Path) -> None:
+    config = write_daemon_config(tmp_path, maps="maps")
+    with Daemon(config) as daemon:
+        daemon.wait_ready()
+        assert daemon.stop() == 0, daemon.log()
+    made = ", ".join(
+        f"{name} {tmp_path / name}" for name in ("inbox", "outbox", "archive", "failed", "maps")
+    )
+    assert f"WARNING mapserver.service: created {made}: not there before" in daemon.log()
+    assert (tmp_path / "maps").is_dir()

@@ -97,7 +97,7 @@ def _change_line(c: Any) -> str:
     version = f" v{c.version}" if c.version is not None else ""
     return (
         f"{c.id:>5} {c.map:<16} {c.kind:<8} {c.state + version:<14} at {centre:<18} "
-        f"{c.sessions:>3} sessions {c.first_seen} .. {c.last_seen}  "
+        f"{c.sessions:>3} session{'' if c.sessions == 1 else 's'} {c.first_seen} .. {c.last_seen}  "
         f"robots {','.join(c.robots)}{'  ' + c.note if c.note else ''}\n"
     )
 

@@ -175,7 +175,8 @@ SCHEMA_VERSION = len(MIGRATIONS)
 
 def _recovery(root: Path) -> str:
     return (
-        f"restore {root / DB_NAME} from a backup (with the daemon stopped), or move {root} "
+        f"restore {root / DB_NAME} from a backup (with the daemon and the web stopped, and "
+        f"its -wal and -shm files removed: README, 'Backing up the map store'), or move {root} "
         "aside and register the maps again with 'mapserver maps add' (the versions on disk are "
         "never touched)"
     )
