@@ -810,3 +810,15 @@ def test_an_approval_racing_the_daemon_that_expires_the_change_publishes_nothing
 
 def current_yaml(tmp_path: Path) -> Path:
     return tmp_path / "maps" / "hall" / "current.yaml"
+
+
+def test_stamps_with_a_part_of_a_second_sort_as_text_in_time_order() -> None:
+    # Session 54's review: kept to the millisecond, "08:00:00.500Z" sorted before "08:00:00Z"
+    # as text, and the store compares stamps as text.
+    from mapserver.fleet.model import utc_stamp
+
+    stamps = ["2026-11-21T08:00:00Z", "2026-11-21T08:00:00.500Z", "2026-11-21T09:00:00.999+01:00"]
+    normal = [utc_stamp(x) for x in stamps]
+    assert normal == ["2026-11-21T08:00:00Z", "2026-11-21T08:00:00Z", "2026-11-21T08:00:00Z"]
+    later = [utc_stamp("2026-11-21T07:59:59.999Z"), *normal, utc_stamp("2026-11-21T08:00:01.2Z")]
+    assert sorted(later) == later
