@@ -1287,6 +1287,12 @@ def process_bundle(
 
     timings = stages.timings_ms
     result = _result_doc(bundle_id, inputs, alignment_doc, found, warnings, timings, observation)
+    if link is not None and observation is None:
+        # On a stored map though it adds nothing (its alignment not trusted): which map and
+        # version, as for any bundle on it (FORMATS.md section 7).
+        result["map"].update(
+            name=link.name, version=link.bundle_version, current_version=link.current_version
+        )
     log.info(
         "%s: done, %d differences, alignment %s score %.2f, %.0f ms",
         bundle_id,

@@ -103,3 +103,21 @@ def test_the_daemon_logs_an_untrusted_bundle_at_warning(tmp_path: Path) -> None:
     [line] = [x for x in daemon.log().splitlines() if "UNTRUSTED" in x]
     assert line.startswith("WARNING mapserver.service: run-1: UNTRUSTED alignment (score ")
     assert LINE.search(line)
+
+
+def test_an_untrusted_bundle_on_a_stored_map_names_the_map_and_its_versions(
+    tmp_path: Path,
+) -> None:
+    # Session 54's review: it got no map name nor version (the web showed "map: null"); it adds
+    # nothing to the fleet map, and says so in a warning.
+    from mapserver.fleet.store import FleetStore
+
+    bundle = make_bundle(tmp_path / "run-1")
+    config = parse_config({**STRICT, "maps": "maps"}, base_dir=tmp_path)
+    with FleetStore(tmp_path / "maps", config.update) as store:
+        store.add_map("room", bundle / "nav2_map.yaml")
+    outcome = process_bundle(bundle, config)
+    assert outcome.result["alignment"]["trusted"] is False and outcome.observation is None
+    m = outcome.result["map"]
+    assert (m["name"], m["version"], m["current_version"]) == ("room", 1, 1)
+    assert any("adds nothing to the fleet map" in w for w in outcome.result["warnings"])
