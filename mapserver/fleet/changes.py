@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from typing import Any
@@ -22,6 +22,7 @@ from mapserver.fleet import evidence, tracker
 from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.model import now_utc, utc_stamp
 from mapserver.fleet.observe import Observation
+from mapserver.maps import OCCUPIED
 
 # A found difference and a tracked change are one when their cells come this close (metres):
 # DBSCAN's own neighbourhood, so that what one bundle would cluster together stays one change.
@@ -82,8 +83,20 @@ class ChangeTracker:
         self.settings = settings
         self.rule = tracker.Persistence(settings.confirm_sessions, settings.confirm_span_hours)
         self._dirty = dirty
+        self._map_state: Callable[[], NDArray[np.uint8]] | None = None
 
-    def track(self, map_id: int, lattice: Lattice, obs: Observation, stamp: str) -> dict[str, Any]:
+    def track(
+        self,
+        map_id: int,
+        lattice: Lattice,
+        obs: Observation,
+        stamp: str,
+        map_state: Callable[[], NDArray[np.uint8]] | None = None,
+    ) -> dict[str, Any]:
+        """Apply one bundle's observation to the tracked changes of a map. ``map_state()`` gives
+        its current version's cells, read when a removed change is judged (the walls the map
+        still has beside it do not count against it); None: not known."""
+        self._map_state = map_state
         res = lattice.resolution
         radius = max(1, round(_MATCH_M / res))
         win = obs.window
@@ -139,9 +152,12 @@ class ChangeTracker:
         expired: list[int] = []
         shown: list[int] = []
         tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
+        standing: NDArray[np.bool_] | None = None
         for c in live:
             if c.id in assigned or c.state not in ("pending", "confirmed"):
                 continue
+            if c.kind == "removed" and standing is None:
+                standing = self._standing(win)
             verdict = tracker.judge(
                 c.kind,
                 tracker.core_cells(c.cells, c.hits),
@@ -150,6 +166,7 @@ class ChangeTracker:
                 obs.occupied,
                 obs.free,
                 tolerance_px=tol,
+                standing=standing if c.kind == "removed" else None,
             )
             if verdict == "as_before":
                 if self._seen_as_before(c.id, stamp, obs.bundle_id, obs.robot, lattice):
@@ -165,7 +182,14 @@ class ChangeTracker:
                 ):
                     continue
                 seen = tracker.shown_cells(
-                    c.kind, c.cells, lattice, win, obs.occupied, obs.free, tolerance_px=tol
+                    c.kind,
+                    c.cells,
+                    lattice,
+                    win,
+                    obs.occupied,
+                    obs.free,
+                    tolerance_px=tol,
+                    standing=standing if c.kind == "removed" else None,
                 )
                 self._support(c, seen, obs, stamp, lattice)
                 shown.append(c.id)
@@ -390,14 +414,37 @@ class ChangeTracker:
     ) -> tuple[tracker.Verdict, IntArray]:
         """A kept observation's verdict on a change's cells, and the cells it shows changed."""
         tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
+        standing = self._standing(window) if kind == "removed" else None
         verdict = tracker.judge(
-            kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+            kind,
+            cells,
+            lattice,
+            window,
+            seen.occupied,
+            seen.free,
+            tolerance_px=tol,
+            standing=standing,
         )
         if verdict != "shows":
             return verdict, np.zeros(0, np.int64)
         return verdict, tracker.shown_cells(
-            kind, cells, lattice, window, seen.occupied, seen.free, tolerance_px=tol
+            kind,
+            cells,
+            lattice,
+            window,
+            seen.occupied,
+            seen.free,
+            tolerance_px=tol,
+            standing=standing,
         )
+
+    def _standing(self, window: Window) -> NDArray[np.bool_] | None:
+        """The window's cells the map's current version has occupied (None: not known)."""
+        if self._map_state is None:
+            return None
+        w = window
+        state = self._map_state()[w.row0 : w.row0 + w.rows, w.col0 : w.col0 + w.cols]
+        return np.asarray(state == OCCUPIED)
 
     def _judge_kept(
         self,

@@ -601,7 +601,9 @@ class FleetStore:
                 bundle_id=obs.bundle_id,
                 robot=obs.robot,
             )
-            outcome = self._changes.track(map_id, lattice, obs, stamp)
+            outcome = self._changes.track(
+                map_id, lattice, obs, stamp, lambda: self._current_state(map_id, obs.map_name)
+            )
             self._checkpoint("evidence-applied")
             self._conn.execute(
                 "INSERT INTO bundles (fingerprint, bundle_id, map_id, robot, stamp, applied_at, "

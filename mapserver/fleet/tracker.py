@@ -71,6 +71,7 @@ def judge(
     min_seen_share: float = 0.5,
     as_before_share: float = 0.7,
     shows_share: float = 0.5,
+    standing: NDArray[np.bool_] | None = None,
 ) -> Verdict:
     """What one bundle's observation says of a tracked change's ``cells``.
 
@@ -96,8 +97,9 @@ def judge(
     if n_seen < min_cells or n_seen < min_seen_share * len(cells):
         return "unseen"
     rows, cols = rows[seen], cols[seen]
-    present = float(_near_occupied(occupied, rows, cols, 1).mean())
-    absent = 1.0 - float(_near_occupied(occupied, rows, cols, tolerance_px).mean())
+    ignored = _Ignored(standing, cells, lattice, window)
+    present = float(_near_occupied(occupied, rows, cols, 1, ignored).mean())
+    absent = 1.0 - float(_near_occupied(occupied, rows, cols, tolerance_px, ignored).mean())
     there, gone = present >= shows_share, absent >= as_before_share
     if kind == "added":
         return "shows" if there else "as_before" if gone else "unclear"
@@ -113,6 +115,7 @@ def shown_cells(
     free: NDArray[np.bool_],
     *,
     tolerance_px: int,
+    standing: NDArray[np.bool_] | None = None,
 ) -> IntArray:
     """The cells of a change that one observation shows changed: an added obstacle's cells seen
     occupied, a removed structure's cells seen free with nothing occupied within
@@ -122,21 +125,48 @@ def shown_cells(
     rows, cols = rows[inside], cols[inside]
     if kind == "added":
         return kept[occupied[rows, cols]]
-    clear = free[rows, cols] & ~_near_occupied(occupied, rows, cols, tolerance_px)
+    ignored = _Ignored(standing, cells, lattice, window)
+    clear = free[rows, cols] & ~_near_occupied(occupied, rows, cols, tolerance_px, ignored)
     return kept[clear]
 
 
+@dataclass(frozen=True)
+class _Ignored:
+    """Occupied cells that do not count near a removed change: those the map still has standing
+    (``standing``, window-shaped) besides the change's own ``cells`` (the rest of a wall a
+    piece was cut from: its ends stand beside a gap)."""
+
+    standing: NDArray[np.bool_] | None
+    cells: IntArray
+    lattice: Lattice
+    window: Window
+
+    def at(self, r: IntArray, c: IntArray) -> NDArray[np.bool_]:
+        if self.standing is None:
+            return np.zeros(len(r), bool)
+        flat = (r + self.window.row0) * self.lattice.width + (c + self.window.col0)
+        return np.asarray(self.standing[r, c] & ~np.isin(flat, self.cells))
+
+
 def _near_occupied(
-    occupied: NDArray[np.bool_], rows: IntArray, cols: IntArray, radius_px: int
+    occupied: NDArray[np.bool_],
+    rows: IntArray,
+    cols: IntArray,
+    radius_px: int,
+    ignored: _Ignored | None = None,
 ) -> NDArray[np.bool_]:
-    """For each cell, whether an occupied cell of the window lies within ``radius_px``."""
+    """For each cell, whether an occupied cell of the window lies within ``radius_px`` (one
+    ``ignored`` says does not count)."""
     h, w = occupied.shape
     dr, dc = disk_offsets(radius_px)
     r = rows[:, None] + dr[None, :]
     c = cols[:, None] + dc[None, :]
     ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     near = np.zeros(r.shape, bool)
-    near[ok] = occupied[r[ok], c[ok]]
+    hit = occupied[r[ok], c[ok]]
+    if ignored is not None and ignored.standing is not None and hit.any():
+        hit &= ~ignored.at(r[ok], c[ok])
+    near[ok] = hit
     return np.asarray(near.any(axis=1))
 
 
