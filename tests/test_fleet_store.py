@@ -267,6 +267,9 @@ def test_a_late_bundle_that_saw_the_spot_free_does_not_expire_a_newer_sighting(
     store.apply(robot.observe(10))  # older than the last sighting: counted, but not the latest
     (change,) = store.changes("hall")
     assert change.state == "pending" and change.contradicted == 1
+    # It contradicts the run; its sessions and the cells they showed stay counted together
+    # (session 54's second review: taking the earlier sessions out left their cells' hits).
+    assert change.sessions == 2
 
 
 @pytest.mark.parametrize("settings", [REVIEW, AUTO])
@@ -434,6 +437,41 @@ def test_a_store_made_before_rollbacks_recorded_their_source_reads_it_from_the_n
     assert store.change(cid).state == "published"
 
 
+def test_stamps_stored_with_a_part_of_a_second_lose_it_in_the_upgrade(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    (cid,) = store.apply(wall_seen(Robot(), 0)).changes
+    store.close()
+    conn = sqlite3.connect(tmp_path / "maps" / "store.db")  # as schema 3 left it
+    conn.executescript(
+        """
+        DROP TABLE observations;
+        DROP TABLE sightings;
+        CREATE TABLE sightings (change_id INTEGER NOT NULL REFERENCES changes(id) ON DELETE
+            CASCADE, bundle_id TEXT NOT NULL, robot TEXT NOT NULL, stamp TEXT NOT NULL,
+            PRIMARY KEY (change_id, bundle_id)) WITHOUT ROWID;
+        UPDATE changes SET first_seen = '2026-11-21T08:00:00.500Z',
+            last_seen = '2026-11-21T08:00:00.500Z', last_observed = '2026-11-21T08:00:00.500Z';
+        UPDATE bundles SET stamp = '2026-11-21T08:00:00.500Z';
+        PRAGMA user_version = 3;
+        """
+    )
+    conn.execute(
+        "INSERT INTO sightings VALUES (?, 'r1-001', 'r1', '2026-11-21T08:00:00.500Z')", (cid,)
+    )
+    conn.commit()
+    conn.close()
+    store = FleetStore(tmp_path / "maps", REVIEW)
+    (change,) = store.changes("hall")
+    assert (change.first_seen, change.last_seen) == ("2026-11-21T08:00:00Z",) * 2
+    rows = store._conn.execute("SELECT stamp FROM sightings UNION ALL SELECT stamp FROM bundles")
+    assert {r[0] for r in rows} == {"2026-11-21T08:00:00Z"}
+    # The next sessions count on it as before.
+    store.apply(wall_seen(Robot(), 8))
+    assert store.changes("hall")[0].sessions == 2
+
+
 def test_the_database_is_wal_with_foreign_keys(tmp_path: Path, hall: Path) -> None:
     new_store(tmp_path, hall).close()
     conn = sqlite3.connect(tmp_path / "maps" / "store.db")
@@ -558,19 +596,50 @@ def test_a_late_bundle_from_before_a_gap_does_not_join_the_run_after_it(
     assert (change.state, change.sessions, change.first_seen) == ("pending", 2, stamp(16))
 
 
-def test_a_late_bundle_that_saw_a_gap_in_a_confirmed_run_sends_it_back_to_review_pending(
+def test_a_late_bundle_that_reported_the_change_before_a_gap_does_not_join_the_run_after_it(
     tmp_path: Path, hall: Path
 ) -> None:
-    store = new_store(tmp_path, hall, REVIEW)
+    # Session 54's second review: the check above covered a late bundle that showed the
+    # change, not one that reported it; the cart of 0 h arriving last was published.
+    maps = []
+    for order in ([0, 2, 20, 30], [2, 20, 30, 0]):  # in stamp order, and 0 h a day late
+        root = tmp_path / "".join(map(str, order))
+        store = new_store(root, hall)
+        robot = Robot()
+        cart = {"added": (PERSON,), "found": (("added", PERSON),)}
+        seen = {
+            0: robot.observe(0, **cart),  # type: ignore[arg-type]
+            2: robot.observe(2),  # gone
+            20: robot.observe(20, **cart),  # type: ignore[arg-type]
+            30: robot.observe(30, **cart),  # type: ignore[arg-type]
+        }
+        for hours in order:
+            store.apply(seen[hours])
+        (pending,) = [c for c in store.changes("hall") if c.state == "pending"]
+        assert (pending.sessions, pending.first_seen) == (2, stamp(20))
+        maps.append(current(root))
+        store.close()
+    assert np.array_equal(maps[0], maps[1]) and np.array_equal(maps[0], building())
+
+
+def test_the_sessions_of_a_change_expired_unseen_are_not_counted_again(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 54's second review: a cart seen twice 40 days ago, expired unseen, then seen
+    # once: the count back gave the new change all three, and published it.
+    store = new_store(tmp_path, hall)
     robot = Robot()
-    person = {"added": (PERSON,)}
-    store.apply(robot.observe(0, **person))  # type: ignore[arg-type]
-    store.apply(robot.observe(16, **person))  # type: ignore[arg-type]
-    update = store.apply(robot.observe(24, found=(("added", PERSON),), **person))  # type: ignore[arg-type]
-    assert update.confirmed != ()  # 0, 16 and 24 h: confirmed, awaiting review
-    store.apply(robot.observe(8))  # late: the spot was free at 8 h
-    (change,) = store.changes("hall")
-    assert (change.state, change.sessions, change.first_seen) == ("pending", 2, stamp(16))
+    cart = {"added": (PERSON,), "found": (("added", PERSON),)}
+    days = -40 * 24  # before the server's clock, as expiry counts from it at the latest
+    store.apply(robot.observe(days, **cart))  # type: ignore[arg-type]
+    store.apply(robot.observe(days + 1, **cart))  # type: ignore[arg-type]
+    store.apply(robot.observe(days + 31 * 24, view=(slice(0, 240), slice(0, 150))))  # elsewhere
+    (old,) = store.changes("hall")
+    assert old.state == "expired"
+    update = store.apply(robot.observe(days + 32 * 24, **cart))  # type: ignore[arg-type]
+    assert update.new_version is None
+    (new,) = [c for c in store.changes("hall") if c.state == "pending"]
+    assert new.sessions == 1
 
 
 def test_a_session_stamped_in_the_same_second_counts_in_either_order(
@@ -673,6 +742,43 @@ def test_a_gap_seen_walled_up_again_is_as_before(tmp_path: Path, hall: Path) -> 
     store.apply(robot.observe(8))  # the wall whole again: its own cells occupied
     (change,) = store.changes("hall")
     assert (change.state, change.sessions) == ("expired", 1)
+
+
+def test_a_thin_piece_flush_with_a_wall_back_a_cell_off_does_not_show_as_gone(
+    tmp_path: Path,
+) -> None:
+    # Session 54's second review: a board one cell thick against the hall's top wall, removed,
+    # then back but seen a cell off, onto the wall's cells: with the walls beside a removed
+    # change ignored, nothing stood near its cells, and the removal was published.
+    from mapserver.fleet.evidence import pack_tiles
+    from mapserver.fleet.lattice import Window
+    from mapserver.fleet.observe import Found, Observation
+    from mapserver.maps import UNKNOWN, save_map
+    from tests.fleet_support import RES
+
+    board = (slice(13, 14), slice(150, 191))  # row 13: the wall is rows 8-12
+    with_board = building()
+    with_board[board] = OCCUPIED
+    (tmp_path / "src").mkdir()
+    store = FleetStore(tmp_path / "maps", AUTO)
+    store.add_map("hall", save_map(tmp_path / "src" / "hall.yaml", with_board, RES, (0, 0, 0)))
+
+    def seen(n: int, hours: float, world: np.ndarray, *, shift: int = 0) -> Observation:
+        local = np.roll(np.where(np.arange(240)[:, None] < 10, UNKNOWN, world), shift, axis=0)
+        occupied, free = local == OCCUPIED, local == FREE
+        window = Window(0, 0, 240, 400)
+        found = (Found("removed", cells(board)),) if shift == 0 and world is not with_board else ()
+        return Observation(
+            "hall", f"r1-{n}", f"fp-{n}", "r1", stamp(hours), 1, 1, window, occupied, free,
+            found, tuple((f.kind, f.cells) for f in found), pack_tiles(window, occupied, free),
+        )  # fmt: skip
+
+    store.apply(seen(1, 0, building()))  # gone, reported
+    store.apply(seen(2, 6, building()))
+    store.apply(seen(3, 14, with_board, shift=-1))  # back, drawn a cell up, onto the wall
+    (change,) = store.changes("hall")
+    assert change.sessions == 2 and change.state == "pending"
+    assert (current(tmp_path)[board] == OCCUPIED).all()
 
 
 def test_two_reviewers_approving_at_once_get_two_whole_versions(tmp_path: Path, hall: Path) -> None:

@@ -146,6 +146,12 @@ class ChangeTracker:
                 # Published: judged against an older version, already in the map. Rejected:
                 # an operator said no; its sightings are not counted (they would grow forever).
                 continue
+            if stamp < c.first_seen and self._as_before_between(
+                map_id, lattice, c.kind, c.cells, stamp, c.first_seen
+            ):
+                # Late, and a kept bundle between it and the change's run saw the area as
+                # before: in stamp order it found an earlier change, which that one expired.
+                continue
             self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
             supported.append(cid)
         # 2. Changes this bundle observed without finding them: shown, or as before?
@@ -169,7 +175,7 @@ class ChangeTracker:
                 standing=standing if c.kind == "removed" else None,
             )
             if verdict == "as_before":
-                if self._seen_as_before(c.id, stamp, obs.bundle_id, obs.robot, lattice):
+                if self._seen_as_before(c.id, stamp, obs.bundle_id, obs.robot):
                     expired.append(c.id)
             elif verdict == "shows":
                 # The local map shows it though the bundle's differences did not report it (too
@@ -465,14 +471,21 @@ class ChangeTracker:
         Back from ``stamp``, newest first: each that shows it is a session (too few cells that
         time, a fold check, a drift kept its differences from reporting it); the first that
         saw the area as before ends the count (the change began after it: the box not yet
-        there, the door still shut; one of the same second cannot tell and is passed over).
+        there, the door still shut; one of the same second cannot tell and is passed over),
+        and none further back than ``expire_unseen_days`` (a run since ended).
         Then the bundles stamped after the finder (it arrived late: a daemon's workers finish
         out of order, an upload waits a day), oldest first, as the live judge would have taken
         them: a session that shows it, or one that saw it as before, which expires it."""
         window = self._judge_window(cells, lattice)
         shown = []
         kept = evidence.observations(self._conn, map_id, window, until=stamp) if earlier else ()
+        # A change not observed for expire_unseen_days expires: sessions further back belong
+        # to a run that ended (a change since expired counted them).
+        gone = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
+        oldest = utc_stamp(gone.isoformat())
         for seen in kept:
+            if seen.stamp < oldest:
+                break
             if seen.bundle_id == finder and seen.stamp == stamp:
                 continue
             verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
@@ -487,7 +500,7 @@ class ChangeTracker:
         ):
             verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
             if verdict == "as_before":
-                self._seen_as_before(cid, seen.stamp, seen.bundle_id, seen.robot, lattice)
+                self._seen_as_before(cid, seen.stamp, seen.bundle_id, seen.robot)
                 break
             if verdict == "shows" and self._sighting(
                 cid, seen.bundle_id, seen.robot, seen.stamp, cells_shown
@@ -509,15 +522,10 @@ class ChangeTracker:
                 return True
         return False
 
-    def _seen_as_before(
-        self, cid: int, stamp: str, bundle_id: str, robot: str, lattice: Lattice
-    ) -> bool:
+    def _seen_as_before(self, cid: int, stamp: str, bundle_id: str, robot: str) -> bool:
         """A bundle saw a pending or confirmed change's area as before: ``contradicted`` (when
-        after its first sighting). The latest word on it expires it. A late one inside the
-        change's run ends the part of the run before it (in stamp order, an earlier change it
-        expired): those sightings no longer count, and a confirmed change that no longer meets
-        the rule is pending again; with no sighting after it, it expires the change. Returns
-        whether the change expired."""
+        after its first sighting). The latest word on it expires it, and so does a late one
+        stamped after every sighting of it. Returns whether the change expired."""
         first_seen, last_observed = self._conn.execute(
             "SELECT first_seen, last_observed FROM changes WHERE id = ?", (cid,)
         ).fetchone()
@@ -525,17 +533,14 @@ class ChangeTracker:
         note = f"seen as before by {bundle_id} ({robot}, {stamp})"
         expire = bool(stamp >= last_observed)
         if not expire and stamp > first_seen:
-            after = self._conn.execute(
+            # Late, after the first sighting: with none after it, in stamp order it was the
+            # latest word on the change (the bundle of a later hour that observed the area
+            # showed nothing either way). One inside the run only contradicts it: the cells a
+            # session showed are counted together, not session by session, so the sessions
+            # before it cannot be taken out again.
+            expire = not self._conn.execute(
                 "SELECT count(*) FROM sightings WHERE change_id = ? AND stamp > ?", (cid, stamp)
             ).fetchone()[0]
-            if after:
-                self._conn.execute(
-                    "DELETE FROM sightings WHERE change_id = ? AND stamp < ?", (cid, stamp)
-                )
-                self._refresh(cid, lattice)
-                self._recheck(cid)
-            else:
-                expire = True
         self._conn.execute(
             "UPDATE changes SET contradicted = contradicted + ?, "
             "last_observed = CASE WHEN ? THEN ? ELSE last_observed END, "
@@ -555,25 +560,6 @@ class ChangeTracker:
             ),
         )
         return expire
-
-    def _recheck(self, cid: int) -> None:
-        """A confirmed change (awaiting review) whose sessions no longer meet the persistence
-        rule goes back to pending."""
-        row = self._conn.execute(
-            "SELECT state, sessions, first_seen, last_seen, latest_shows FROM changes WHERE id = ?",
-            (cid,),
-        ).fetchone()
-        if row[0] == "confirmed" and not tracker.confirmed(
-            self.rule,
-            sessions=row[1],
-            first_seen=row[2],
-            last_seen=row[3],
-            latest_shows=bool(row[4]),
-        ):
-            self._conn.execute(
-                "UPDATE changes SET state = 'pending', updated_at = ? WHERE id = ?",
-                (now_utc(), cid),
-            )
 
     def _state(self, cid: int) -> str:
         return str(

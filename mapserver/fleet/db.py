@@ -136,7 +136,8 @@ MIGRATIONS: tuple[str, ...] = (
     # found late is counted in the earlier sessions whose local maps showed it. And a sighting is
     # a bundle id at a stamp: an id freed by retention and used again is another session. (The
     # key's columns come first: SQLite 3.40's integrity check reports a WITHOUT ROWID table's
-    # NOT NULL column after a key column as NULL.)
+    # NOT NULL column after a key column as NULL.) Stamps are kept to the second from now on
+    # (sortable as text): those stored with a part of a second lose it.
     """
     CREATE TABLE sightings_by_stamp (
         change_id INTEGER NOT NULL,
@@ -145,8 +146,12 @@ MIGRATIONS: tuple[str, ...] = (
         robot TEXT NOT NULL,
         PRIMARY KEY (change_id, bundle_id, stamp)
     ) WITHOUT ROWID;
-    INSERT INTO sightings_by_stamp (change_id, bundle_id, stamp, robot)
-        SELECT change_id, bundle_id, stamp, robot FROM sightings;
+    INSERT OR IGNORE INTO sightings_by_stamp (change_id, bundle_id, stamp, robot)
+        SELECT change_id, bundle_id, substr(stamp, 1, 19) || 'Z', robot FROM sightings;
+    UPDATE changes SET first_seen = substr(first_seen, 1, 19) || 'Z',
+        last_seen = substr(last_seen, 1, 19) || 'Z',
+        last_observed = substr(last_observed, 1, 19) || 'Z';
+    UPDATE bundles SET stamp = substr(stamp, 1, 19) || 'Z';
     DROP TABLE sightings;
     CREATE TABLE sightings (
         change_id INTEGER NOT NULL REFERENCES changes(id) ON DELETE CASCADE,

@@ -101,6 +101,10 @@ def judge(
     present = float(_near_occupied(occupied, rows, cols, 1, ignored).mean())
     absent = 1.0 - float(_near_occupied(occupied, rows, cols, tolerance_px, ignored).mean())
     there, gone = present >= shows_share, absent >= as_before_share
+    if gone and standing is not None:
+        # Gone only when what stands right beside the cells is not most of them: a piece flush
+        # with a wall, back but seen a cell off onto the wall, would otherwise show as gone.
+        gone = float(_near_occupied(occupied, rows, cols, 1).mean()) < shows_share
     if kind == "added":
         return "shows" if there else "as_before" if gone else "unclear"
     return "shows" if gone else "as_before" if there else "unclear"
