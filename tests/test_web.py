@@ -172,6 +172,11 @@ def test_forms_need_a_signed_session_and_a_csrf_token(fresh: Config) -> None:
     history = c.get(f"/api/changes/{cid}").json()["history"]
     assert history[-1]["actor"] == "alice (web)" and history[-1]["action"] == "approved"
     assert "version 2" in c.get("/maps/depot").text
+    # Signing out is a form like the others (session 54's review: a forged one was accepted).
+    assert c.post("/logout", follow_redirects=False).status_code == 403
+    assert "signed in as alice" in c.get("/").text
+    out = c.post("/logout", data={"csrf": csrf}, follow_redirects=False)
+    assert out.status_code == 303 and "signed in as" not in c.get("/").text
 
 
 def test_a_non_loopback_address_without_a_token_is_refused(site: Config) -> None:

@@ -738,7 +738,12 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         return response
 
     @app.post("/logout", include_in_schema=False)
-    def logout() -> Response:
+    def logout(request: Request, csrf: Annotated[str, Form()] = "") -> Response:
+        session = session_of(request)
+        # A forged form must not sign a reviewer out either.
+        expected = security.csrf_token(token, session) if token and session else None
+        if expected is not None and not security.same(csrf, expected):
+            raise HTTPException(403, "the form is stale or forged: reload the page")
         response = RedirectResponse("/", status_code=303)
         response.delete_cookie(security.COOKIE)
         return response
