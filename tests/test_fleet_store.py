@@ -734,6 +734,20 @@ def test_a_gap_cut_in_a_wall_shows_beside_the_wall_ends_the_map_still_has(
     assert (current(tmp_path)[gap] == FREE).all()
 
 
+def test_a_current_version_gone_from_disk_does_not_stop_the_judging(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    gap = (slice(8, 13), slice(200, 216))
+    store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
+    (tmp_path / "maps" / "hall" / "v0001.pgm").unlink()  # an operator's mistake
+    update = store.apply(robot.observe(8, removed=(gap,)))  # judged as before session 54
+    assert not update.repeated
+    (change,) = store.changes("hall")
+    assert change.state == "pending"
+
+
 def test_a_gap_seen_walled_up_again_is_as_before(tmp_path: Path, hall: Path) -> None:
     store = new_store(tmp_path, hall)
     robot = Robot()

@@ -7,6 +7,7 @@ themselves are the pure functions of :mod:`mapserver.fleet.tracker`.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import sqlite3
 from collections.abc import Callable, Iterable, Sequence
@@ -18,11 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.config import UpdateConfig
+from mapserver.errors import MapserverError
 from mapserver.fleet import evidence, tracker
 from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.model import now_utc, utc_stamp
 from mapserver.fleet.observe import Observation
 from mapserver.maps import OCCUPIED
+
+log = logging.getLogger(__name__)
 
 # A found difference and a tracked change are one when their cells come this close (metres):
 # DBSCAN's own neighbourhood, so that what one bundle would cluster together stays one change.
@@ -445,12 +449,18 @@ class ChangeTracker:
         )
 
     def _standing(self, window: Window) -> NDArray[np.bool_] | None:
-        """The window's cells the map's current version has occupied (None: not known)."""
+        """The window's cells the map's current version has occupied (None: not known, or its
+        file unreadable: then every occupied cell counts, as before session 54)."""
         if self._map_state is None:
             return None
+        try:
+            whole = self._map_state()
+        except (OSError, MapserverError) as error:
+            log.warning("the current version's cells are unreadable (%s): judged without", error)
+            self._map_state = None
+            return None
         w = window
-        state = self._map_state()[w.row0 : w.row0 + w.rows, w.col0 : w.col0 + w.cols]
-        return np.asarray(state == OCCUPIED)
+        return np.asarray(whole[w.row0 : w.row0 + w.rows, w.col0 : w.col0 + w.cols] == OCCUPIED)
 
     def _judge_kept(
         self,
