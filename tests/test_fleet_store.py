@@ -758,6 +758,60 @@ def test_a_gap_seen_walled_up_again_is_as_before(tmp_path: Path, hall: Path) -> 
     assert (change.state, change.sessions) == ("expired", 1)
 
 
+def test_the_count_back_follows_a_run_longer_than_the_expiry_and_stops_at_a_gap_that_long(
+    tmp_path: Path, hall: Path
+) -> None:
+    # Session 54's final review: it stopped expire_unseen_days (30) before the finder, not at
+    # a gap of that length: a wall seen every day for 40 days counted 31 sessions.
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    start = -100 * 24
+    store.apply(robot.observe(start, added=(WALL,)))  # 40 days before the daily run: a gap
+    for day in range(40, 80):
+        store.apply(robot.observe(start + day * 24, added=(WALL,)))
+    store.apply(wall_seen(robot, start + 80 * 24))
+    (change,) = store.changes("hall")
+    assert change.sessions == 41 and change.first_seen == stamp(start + 40 * 24)
+
+
+def test_a_late_bundle_from_before_a_gap_longer_than_the_expiry_starts_no_run(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    days = -60 * 24
+    store.apply(wall_seen(robot, days + 35 * 24))
+    store.apply(wall_seen(robot, days + 35 * 24 + 10))
+    store.apply(wall_seen(robot, days))  # late, 35 days before: in stamp order long expired
+    (pending,) = [c for c in store.changes("hall") if c.state == "pending"]
+    assert pending.sessions == 2 and pending.first_seen == stamp(days + 35 * 24)
+
+
+def test_a_pending_change_unseen_for_longer_than_the_expiry_is_not_revived(
+    tmp_path: Path, hall: Path
+) -> None:
+    store = new_store(tmp_path, hall, REVIEW)
+    robot = Robot()
+    days = -60 * 24
+    store.apply(wall_seen(robot, days))
+    store.apply(wall_seen(robot, days + 31 * 24))  # the first expired unseen meanwhile
+    states = sorted((c.state, c.sessions) for c in store.changes("hall"))
+    assert states == [("expired", 1), ("pending", 1)]
+
+
+def test_a_current_version_of_another_size_does_not_fail_the_bundle(
+    tmp_path: Path, hall: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = new_store(tmp_path, hall)
+    robot = Robot()
+    gap = (slice(8, 13), slice(200, 216))
+    store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
+    monkeypatch.setattr(store, "_current_state", lambda *a: building()[:100, :100])
+    store.apply(robot.observe(8, removed=(gap,)))
+    (change,) = store.changes("hall")
+    assert change.state == "pending"
+
+
 def test_a_thin_piece_flush_with_a_wall_back_a_cell_off_does_not_show_as_gone(
     tmp_path: Path,
 ) -> None:

@@ -175,6 +175,11 @@ def test_forms_need_a_signed_session_and_a_csrf_token(fresh: Config) -> None:
     # Signing out is a form like the others (session 54's review: a forged one was accepted).
     assert c.post("/logout", follow_redirects=False).status_code == 403
     assert "signed in as alice" in c.get("/").text
+    # From another site the browser sends no session cookie (SameSite=Strict): the answer must
+    # not delete it either (a browser applies a Set-Cookie on the forged page's word).
+    other = client(fresh)
+    forged = other.post("/logout", follow_redirects=False)
+    assert forged.status_code == 303 and "set-cookie" not in forged.headers
     out = c.post("/logout", data={"csrf": csrf}, follow_redirects=False)
     assert out.status_code == 303 and "signed in as" not in c.get("/").text
 

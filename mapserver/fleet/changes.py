@@ -101,6 +101,24 @@ class ChangeTracker:
         its current version's cells, read when a removed change is judged (the walls the map
         still has beside it do not count against it); None: not known."""
         self._map_state = map_state
+        expired: list[int] = []
+        # 0. Pending changes nobody has observed for long expire, first (a sighting after that
+        # long begins a new run, as in stamp order): long before this bundle, or
+        # before now when it is stamped ahead of this server's clock (a robot's clock weeks
+        # ahead would expire every pending change of the map).
+        now = min(tracker.parse_stamp(stamp), datetime.now(timezone.utc))
+        limit = now - timedelta(days=self.settings.expire_unseen_days)
+        cutoff = utc_stamp(limit.isoformat())
+        for (cid,) in self._conn.execute(
+            "SELECT id FROM changes WHERE map_id = ? AND state = 'pending' AND last_observed < ?",
+            (map_id, cutoff),
+        ).fetchall():
+            self._conn.execute(
+                "UPDATE changes SET state = 'expired', note = ?, updated_at = ? WHERE id = ?",
+                (f"not observed for {self.settings.expire_unseen_days:g} days", now_utc(), cid),
+            )
+            expired.append(cid)
+            self._dirty.add(cid)
         res = lattice.resolution
         radius = max(1, round(_MATCH_M / res))
         win = obs.window
@@ -150,16 +168,11 @@ class ChangeTracker:
                 # Published: judged against an older version, already in the map. Rejected:
                 # an operator said no; its sightings are not counted (they would grow forever).
                 continue
-            if stamp < c.first_seen and self._as_before_between(
-                map_id, lattice, c.kind, c.cells, stamp, c.first_seen
-            ):
-                # Late, and a kept bundle between it and the change's run saw the area as
-                # before: in stamp order it found an earlier change, which that one expired.
+            if self._before_the_run(map_id, lattice, c, stamp):
                 continue
             self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
             supported.append(cid)
         # 2. Changes this bundle observed without finding them: shown, or as before?
-        expired: list[int] = []
         shown: list[int] = []
         tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
         standing: NDArray[np.bool_] | None = None
@@ -183,13 +196,8 @@ class ChangeTracker:
                     expired.append(c.id)
             elif verdict == "shows":
                 # The local map shows it though the bundle's differences did not report it (too
-                # few cells this time, an edge of the observed area): a session that saw it,
-                # unless it is older than the change's run and a kept bundle stamped between
-                # them saw the area as before (that one began the run: in stamp order this
-                # bundle would have been counted on an earlier change, since expired).
-                if stamp < c.first_seen and self._as_before_between(
-                    map_id, lattice, c.kind, c.cells, stamp, c.first_seen
-                ):
+                # few cells this time, an edge of the observed area): a session that saw it.
+                if self._before_the_run(map_id, lattice, c, stamp):
                     continue
                 seen = tracker.shown_cells(
                     c.kind,
@@ -206,22 +214,6 @@ class ChangeTracker:
         for cid in created:
             if self._state(cid) == "expired":
                 expired.append(cid)
-        # 3. Pending changes nobody has observed for long expire: long before this bundle, or
-        # before now when it is stamped ahead of this server's clock (a robot's clock weeks
-        # ahead would expire every pending change of the map).
-        now = min(tracker.parse_stamp(stamp), datetime.now(timezone.utc))
-        limit = now - timedelta(days=self.settings.expire_unseen_days)
-        cutoff = utc_stamp(limit.isoformat())
-        for (cid,) in self._conn.execute(
-            "SELECT id FROM changes WHERE map_id = ? AND state = 'pending' AND last_observed < ?",
-            (map_id, cutoff),
-        ).fetchall():
-            self._conn.execute(
-                "UPDATE changes SET state = 'expired', note = ?, updated_at = ? WHERE id = ?",
-                (f"not observed for {self.settings.expire_unseen_days:g} days", now_utc(), cid),
-            )
-            expired.append(cid)
-            self._dirty.add(cid)
         # 4. The persistence rule.
         confirmed = []
         supported += shown
@@ -449,12 +441,18 @@ class ChangeTracker:
         )
 
     def _standing(self, window: Window) -> NDArray[np.bool_] | None:
-        """The window's cells the map's current version has occupied (None: not known, or its
-        file unreadable: then every occupied cell counts, as before session 54)."""
+        """The window's cells the map's current version has occupied. None when not known, or
+        its file is unreadable or not of the map's size: then every occupied cell near a removed
+        change counts as its structure standing (the judge without ``standing``)."""
         if self._map_state is None:
             return None
         try:
             whole = self._map_state()
+            if (
+                whole.shape[0] < window.row0 + window.rows
+                or whole.shape[1] < window.col0 + window.cols
+            ):
+                raise MapserverError(f"its cells are {whole.shape[1]} x {whole.shape[0]}")
         except (OSError, MapserverError) as error:
             log.warning("the current version's cells are unreadable (%s): judged without", error)
             self._map_state = None
@@ -482,19 +480,20 @@ class ChangeTracker:
         time, a fold check, a drift kept its differences from reporting it); the first that
         saw the area as before ends the count (the change began after it: the box not yet
         there, the door still shut; one of the same second cannot tell and is passed over),
-        and none further back than ``expire_unseen_days`` (a run since ended).
+        and so does a gap of ``expire_unseen_days`` before the oldest counted (a run since
+        ended).
         Then the bundles stamped after the finder (it arrived late: a daemon's workers finish
         out of order, an upload waits a day), oldest first, as the live judge would have taken
         them: a session that shows it, or one that saw it as before, which expires it."""
         window = self._judge_window(cells, lattice)
         shown = []
         kept = evidence.observations(self._conn, map_id, window, until=stamp) if earlier else ()
-        # A change not observed for expire_unseen_days expires: sessions further back belong
-        # to a run that ended (a change since expired counted them).
-        gone = tracker.parse_stamp(stamp) - timedelta(days=self.settings.expire_unseen_days)
-        oldest = utc_stamp(gone.isoformat())
+        # A change not observed for expire_unseen_days expires: a session further back than
+        # that from the next one counted belongs to a run that ended.
+        expire = timedelta(days=self.settings.expire_unseen_days)
+        newest = tracker.parse_stamp(stamp)
         for seen in kept:
-            if seen.stamp < oldest:
+            if tracker.parse_stamp(seen.stamp) < newest - expire:
                 break
             if seen.bundle_id == finder and seen.stamp == stamp:
                 continue
@@ -503,6 +502,7 @@ class ChangeTracker:
                 break
             if verdict == "shows":
                 shown.append((seen.bundle_id, seen.robot, seen.stamp, cells_shown))
+                newest = tracker.parse_stamp(seen.stamp)
         if self._sightings(cid, shown):
             self._refresh(cid, lattice)
         for seen in evidence.observations(
@@ -516,6 +516,18 @@ class ChangeTracker:
                 cid, seen.bundle_id, seen.robot, seen.stamp, cells_shown
             ):
                 self._refresh(cid, lattice, stamp_shown=seen.stamp)
+
+    def _before_the_run(self, map_id: int, lattice: Lattice, c: _Change, stamp: str) -> bool:
+        """Whether a late bundle (stamped before the change's first sighting) belongs to an
+        earlier run, not this one: a kept bundle between them saw the area as before, or more
+        than ``expire_unseen_days`` lie between them. In stamp order it would have been counted
+        on an earlier change, which that bundle, or the time, expired."""
+        if stamp >= c.first_seen:
+            return False
+        gap = tracker.span_hours(stamp, c.first_seen) / 24.0
+        if gap > self.settings.expire_unseen_days:
+            return True
+        return self._as_before_between(map_id, lattice, c.kind, c.cells, stamp, c.first_seen)
 
     def _as_before_between(
         self, map_id: int, lattice: Lattice, kind: str, cells: IntArray, after: str, before: str

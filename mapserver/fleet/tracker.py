@@ -89,6 +89,14 @@ def judge(
     Presence needs the cells themselves (a neighbour at most: one cell of misalignment);
     absence needs nothing occupied within the tolerance. A bundle that sees the thing a little
     off is ``unclear``, neither: it neither confirms nor contradicts.
+
+    ``standing`` (window-shaped: the cells the map's current version has occupied), for a
+    removed change: occupied cells on it besides the change's own ``cells`` do not count in
+    either test (the rest of the wall a piece was cut from stands beside the gap), but the
+    structure is gone only when under ``shows_share`` of the cells have their own cell or a
+    4-neighbour occupied, standing ones included: a piece flush with a wall, back but seen a cell
+    off onto the wall, must not show as gone, so a piece one or two cells deep against a wall
+    is ``unclear`` from a session that does not report it.
     """
     rows, cols, inside = window.local(lattice, cells)
     rows, cols = rows[inside], cols[inside]

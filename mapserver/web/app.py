@@ -739,12 +739,15 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     @app.post("/logout", include_in_schema=False)
     def logout(request: Request, csrf: Annotated[str, Form()] = "") -> Response:
+        # A forged form must not sign a reviewer out either. One from another site comes
+        # without the session cookie (SameSite=Strict): nothing to sign out, and the cookie is
+        # left alone, or the browser would drop it on that page's word.
         session = session_of(request)
-        # A forged form must not sign a reviewer out either.
-        expected = security.csrf_token(token, session) if token and session else None
-        if expected is not None and not security.same(csrf, expected):
-            raise HTTPException(403, "the form is stale or forged: reload the page")
         response = RedirectResponse("/", status_code=303)
+        if token is None or session is None:
+            return response
+        if not security.same(csrf, security.csrf_token(token, session)):
+            raise HTTPException(403, "the form is stale or forged: reload the page")
         response.delete_cookie(security.COOKIE)
         return response
 
