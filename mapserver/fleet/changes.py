@@ -102,7 +102,7 @@ class ChangeTracker:
         still has beside it do not count against it); None: not known."""
         self._map_state = map_state
         expired: list[int] = []
-        # 0. Pending changes nobody has observed for long expire, first (a sighting after that
+        # 1. Pending changes nobody has observed for long expire, first (a sighting after that
         # long begins a new run, as in stamp order): long before this bundle, or
         # before now when it is stamped ahead of this server's clock (a robot's clock weeks
         # ahead would expire every pending change of the map).
@@ -125,7 +125,7 @@ class ChangeTracker:
         live = self._load_changes(map_id, lattice, win, margin=radius)
         by_id = {c.id: c for c in live}
         created: list[int] = []
-        # 1. Every difference found against the current version: one tracked change each.
+        # 2. Every difference found against the current version: one tracked change each.
         assigned: dict[int, list[IntArray]] = {}
         new: list[tuple[str, IntArray]] = []
         for found in obs.found:
@@ -172,7 +172,7 @@ class ChangeTracker:
                 continue
             self._support(c, np.unique(np.concatenate(parts)), obs, stamp, lattice)
             supported.append(cid)
-        # 2. Changes this bundle observed without finding them: shown, or as before?
+        # 3. Changes this bundle observed without finding them: shown, or as before?
         shown: list[int] = []
         tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
         standing: NDArray[np.bool_] | None = None
