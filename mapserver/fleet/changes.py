@@ -24,7 +24,6 @@ from mapserver.fleet import evidence, tracker
 from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.model import now_utc, utc_stamp
 from mapserver.fleet.observe import Observation
-from mapserver.maps import OCCUPIED
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +33,11 @@ _MATCH_M = 0.3
 # Absence needs nothing occupied this close (metres) to a change's cells: a bundle that sees an
 # added obstacle a little off does not contradict it.
 _JUDGE_TOLERANCE_M = 0.2
+
+
+def _tolerance_px(lattice: Lattice) -> int:
+    """:data:`_JUDGE_TOLERANCE_M` in cells of the map (one at least)."""
+    return max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
 
 
 @dataclass
@@ -119,8 +123,7 @@ class ChangeTracker:
             )
             expired.append(cid)
             self._dirty.add(cid)
-        res = lattice.resolution
-        radius = max(1, round(_MATCH_M / res))
+        radius = max(1, round(_MATCH_M / lattice.resolution))
         win = obs.window
         live = self._load_changes(map_id, lattice, win, margin=radius)
         by_id = {c.id: c for c in live}
@@ -174,22 +177,17 @@ class ChangeTracker:
             supported.append(cid)
         # 3. Changes this bundle observed without finding them: shown, or as before?
         shown: list[int] = []
-        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / res))
-        standing: NDArray[np.bool_] | None = None
         for c in live:
             if c.id in assigned or c.state not in ("pending", "confirmed"):
                 continue
-            if c.kind == "removed" and standing is None:
-                standing = self._standing(win)
-            verdict = tracker.judge(
+            verdict, seen = self._judge(
                 c.kind,
                 tracker.core_cells(c.cells, c.hits),
+                c.cells,
                 lattice,
                 win,
                 obs.occupied,
                 obs.free,
-                tolerance_px=tol,
-                standing=standing if c.kind == "removed" else None,
             )
             if verdict == "as_before":
                 if self._seen_as_before(c.id, stamp, obs.bundle_id, obs.robot):
@@ -199,16 +197,6 @@ class ChangeTracker:
                 # few cells this time, an edge of the observed area): a session that saw it.
                 if self._before_the_run(map_id, lattice, c, stamp):
                     continue
-                seen = tracker.shown_cells(
-                    c.kind,
-                    c.cells,
-                    lattice,
-                    win,
-                    obs.occupied,
-                    obs.free,
-                    tolerance_px=tol,
-                    standing=standing if c.kind == "removed" else None,
-                )
                 self._support(c, seen, obs, stamp, lattice)
                 shown.append(c.id)
         for cid in created:
@@ -405,60 +393,49 @@ class ChangeTracker:
         """The window a change's cells are judged on in a kept observation: their box grown by
         the judging tolerance and the presence neighbour (as the live judge sees the whole
         bundle), within the map."""
-        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
-        row0, col0, last_row, last_col = _box(cells, lattice, tol + 1)
+        row0, col0, last_row, last_col = _box(cells, lattice, _tolerance_px(lattice) + 1)
         row0, col0 = max(row0, 0), max(col0, 0)
         last_row, last_col = min(last_row, lattice.height - 1), min(last_col, lattice.width - 1)
         return Window(row0, col0, last_row - row0 + 1, last_col - col0 + 1)
 
     def _judge(
-        self, kind: str, cells: IntArray, lattice: Lattice, window: Window, seen: evidence.Seen
+        self,
+        kind: str,
+        judged: IntArray,
+        cells: IntArray,
+        lattice: Lattice,
+        window: Window,
+        occupied: NDArray[np.bool_],
+        free: NDArray[np.bool_],
     ) -> tuple[tracker.Verdict, IntArray]:
-        """A kept observation's verdict on a change's cells, and the cells it shows changed."""
-        tol = max(1, math.ceil(_JUDGE_TOLERANCE_M / lattice.resolution))
-        standing = self._standing(window) if kind == "removed" else None
+        """One observation's verdict on a change (on its cells ``judged``: all, or its core),
+        and, when it shows the change, the cells of ``cells`` it shows changed."""
+        tol = _tolerance_px(lattice)
+        current = self._current(lattice) if kind == "removed" else None
         verdict = tracker.judge(
-            kind,
-            cells,
-            lattice,
-            window,
-            seen.occupied,
-            seen.free,
-            tolerance_px=tol,
-            standing=standing,
+            kind, judged, lattice, window, occupied, free, tolerance_px=tol, current=current
         )
         if verdict != "shows":
             return verdict, np.zeros(0, np.int64)
         return verdict, tracker.shown_cells(
-            kind,
-            cells,
-            lattice,
-            window,
-            seen.occupied,
-            seen.free,
-            tolerance_px=tol,
-            standing=standing,
+            kind, cells, lattice, window, occupied, free, tolerance_px=tol, current=current
         )
 
-    def _standing(self, window: Window) -> NDArray[np.bool_] | None:
-        """The window's cells the map's current version has occupied. None when not known, or
-        its file is unreadable or not of the map's size: then every occupied cell near a removed
-        change counts as its structure standing (the judge without ``standing``)."""
+    def _current(self, lattice: Lattice) -> NDArray[np.uint8] | None:
+        """The map's current version's cells (the store keeps them decoded). None when not
+        known, or its file is unreadable or not of the map's size: then every occupied cell near
+        a removed change counts as its structure standing."""
         if self._map_state is None:
             return None
         try:
-            whole = self._map_state()
-            if (
-                whole.shape[0] < window.row0 + window.rows
-                or whole.shape[1] < window.col0 + window.cols
-            ):
-                raise MapserverError(f"its cells are {whole.shape[1]} x {whole.shape[0]}")
+            cells = self._map_state()
+            if cells.shape != (lattice.height, lattice.width):
+                raise MapserverError(f"its cells are {cells.shape[1]} x {cells.shape[0]}")
         except (OSError, MapserverError) as error:
             log.warning("the current version's cells are unreadable (%s): judged without", error)
             self._map_state = None
             return None
-        w = window
-        return np.asarray(whole[w.row0 : w.row0 + w.rows, w.col0 : w.col0 + w.cols] == OCCUPIED)
+        return cells
 
     def _judge_kept(
         self,
@@ -497,7 +474,9 @@ class ChangeTracker:
                 break
             if seen.bundle_id == finder and seen.stamp == stamp:
                 continue
-            verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
+            verdict, cells_shown = self._judge(
+                kind, cells, cells, lattice, window, seen.occupied, seen.free
+            )
             if verdict == "as_before" and seen.stamp < stamp:
                 break
             if verdict == "shows":
@@ -508,7 +487,9 @@ class ChangeTracker:
         for seen in evidence.observations(
             self._conn, map_id, window, after=stamp, newest_first=False
         ):
-            verdict, cells_shown = self._judge(kind, cells, lattice, window, seen)
+            verdict, cells_shown = self._judge(
+                kind, cells, cells, lattice, window, seen.occupied, seen.free
+            )
             if verdict == "as_before":
                 self._seen_as_before(cid, seen.stamp, seen.bundle_id, seen.robot)
                 break
@@ -540,7 +521,8 @@ class ChangeTracker:
         ):
             if seen.stamp >= before:
                 return False
-            if self._judge(kind, cells, lattice, window, seen)[0] == "as_before":
+            verdict, _ = self._judge(kind, cells, cells, lattice, window, seen.occupied, seen.free)
+            if verdict == "as_before":
                 return True
         return False
 

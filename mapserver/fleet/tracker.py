@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.fleet.lattice import IntArray, Lattice, Window
+from mapserver.maps import OCCUPIED
 
 Verdict = Literal["unseen", "shows", "as_before", "unclear"]
 
@@ -71,7 +72,7 @@ def judge(
     min_seen_share: float = 0.5,
     as_before_share: float = 0.7,
     shows_share: float = 0.5,
-    standing: NDArray[np.bool_] | None = None,
+    current: NDArray[np.uint8] | None = None,
 ) -> Verdict:
     """What one bundle's observation says of a tracked change's ``cells``.
 
@@ -90,13 +91,13 @@ def judge(
     absence needs nothing occupied within the tolerance. A bundle that sees the thing a little
     off is ``unclear``, neither: it neither confirms nor contradicts.
 
-    ``standing`` (window-shaped: the cells the map's current version has occupied), for a
-    removed change: occupied cells on it besides the change's own ``cells`` do not count in
-    either test (the rest of the wall a piece was cut from stands beside the gap), but the
-    structure is gone only when under ``shows_share`` of the cells have their own cell or a
-    4-neighbour occupied, standing ones included: a piece flush with a wall, back but seen a cell
-    off onto the wall, must not show as gone, so a piece one or two cells deep against a wall
-    is ``unclear`` from a session that does not report it.
+    ``current`` (the map's current version, (lattice.height, lattice.width) FREE / OCCUPIED /
+    UNKNOWN), for a removed change: the cells it has occupied besides the change's own
+    ``cells`` do not count in either test (the rest of the wall a piece was cut from stands
+    beside the gap), but the structure is gone only when under ``shows_share`` of the cells
+    have their own cell or a 4-neighbour occupied, those included: a piece flush with a wall,
+    back but seen a cell off onto the wall, must not show as gone, so a piece one or two cells
+    deep against a wall is ``unclear`` from a session that does not report it.
     """
     rows, cols, inside = window.local(lattice, cells)
     rows, cols = rows[inside], cols[inside]
@@ -105,11 +106,11 @@ def judge(
     if n_seen < min_cells or n_seen < min_seen_share * len(cells):
         return "unseen"
     rows, cols = rows[seen], cols[seen]
-    ignored = _Ignored(standing, cells, lattice, window)
+    ignored = _Ignored.of(current, cells, lattice, window)
     present = float(_near_occupied(occupied, rows, cols, 1, ignored).mean())
     absent = 1.0 - float(_near_occupied(occupied, rows, cols, tolerance_px, ignored).mean())
     there, gone = present >= shows_share, absent >= as_before_share
-    if gone and standing is not None:
+    if gone and ignored is not None:
         # Gone only when what stands right beside the cells is not most of them: a piece flush
         # with a wall, back but seen a cell off onto the wall, would otherwise show as gone.
         gone = float(_near_occupied(occupied, rows, cols, 1).mean()) < shows_share
@@ -127,7 +128,7 @@ def shown_cells(
     free: NDArray[np.bool_],
     *,
     tolerance_px: int,
-    standing: NDArray[np.bool_] | None = None,
+    current: NDArray[np.uint8] | None = None,
 ) -> IntArray:
     """The cells of a change that one observation shows changed: an added obstacle's cells seen
     occupied, a removed structure's cells seen free with nothing occupied within
@@ -137,27 +138,33 @@ def shown_cells(
     rows, cols = rows[inside], cols[inside]
     if kind == "added":
         return kept[occupied[rows, cols]]
-    ignored = _Ignored(standing, cells, lattice, window)
+    ignored = _Ignored.of(current, cells, lattice, window)
     clear = free[rows, cols] & ~_near_occupied(occupied, rows, cols, tolerance_px, ignored)
     return kept[clear]
 
 
 @dataclass(frozen=True)
 class _Ignored:
-    """Occupied cells that do not count near a removed change: those the map still has standing
-    (``standing``, window-shaped) besides the change's own ``cells`` (the rest of a wall a
-    piece was cut from: its ends stand beside a gap)."""
+    """Occupied cells that do not count near a removed change: those the map's ``current``
+    version still has occupied besides the change's own ``cells`` (the rest of a wall a piece
+    was cut from: its ends stand beside a gap). Read where asked, never over a whole window."""
 
-    standing: NDArray[np.bool_] | None
+    current: NDArray[np.uint8]
     cells: IntArray
     lattice: Lattice
     window: Window
 
+    @staticmethod
+    def of(
+        current: NDArray[np.uint8] | None, cells: IntArray, lattice: Lattice, window: Window
+    ) -> _Ignored | None:
+        return None if current is None else _Ignored(current, cells, lattice, window)
+
     def at(self, r: IntArray, c: IntArray) -> NDArray[np.bool_]:
-        if self.standing is None:
-            return np.zeros(len(r), bool)
-        flat = (r + self.window.row0) * self.lattice.width + (c + self.window.col0)
-        return np.asarray(self.standing[r, c] & ~np.isin(flat, self.cells))
+        """Whether window cells ``(r, c)`` do not count."""
+        rows, cols = r + self.window.row0, c + self.window.col0
+        standing = self.current[rows, cols] == OCCUPIED
+        return np.asarray(standing & ~np.isin(rows * self.lattice.width + cols, self.cells))
 
 
 def _near_occupied(
@@ -176,7 +183,7 @@ def _near_occupied(
     ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     near = np.zeros(r.shape, bool)
     hit = occupied[r[ok], c[ok]]
-    if ignored is not None and ignored.standing is not None and hit.any():
+    if ignored is not None and hit.any():
         hit &= ~ignored.at(r[ok], c[ok])
     near[ok] = hit
     return np.asarray(near.any(axis=1))
