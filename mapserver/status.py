@@ -13,6 +13,7 @@ import errno
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -184,8 +185,10 @@ def report(config: Config, *, now: float | None = None, recent: bool = True) -> 
         out.queued = len(_visible(config.inbox / TAKEN))
     if recent:
         since = now - DAY_S
-        out.results_24h = sum(1 for _ in _recent(config.outbox, RESULT, since))
-        failed = sorted(_recent_failures(config.failed, since), key=lambda item: -item[1])
+        out.results_24h = sum(1 for _ in _recent(config.outbox, lambda d: d / RESULT, since))
+        # The daemon's error document: mapserver-error.yaml when the bundle brought an
+        # error.yaml of its own, whose time may be a robot's (rsync -a keeps it).
+        failed = sorted(_recent(config.failed, daemon_error, since), key=lambda item: -item[1])
         out.failed_24h = len(failed)
         out.failures = [_failure(path) for path, _ in failed[:_LISTED_FAILURES]]
     folders = {name: getattr(config, name) for name in ("inbox", "outbox", "archive", "failed")}
@@ -230,25 +233,14 @@ def _visible(path: Path) -> list[str]:
         return []
 
 
-def _recent(folder: Path, name: str, since: float) -> list[tuple[Path, float]]:
-    """``folder/<id>/<name>`` written since ``since`` (epoch seconds), with that time."""
+def _recent(
+    folder: Path, document: Callable[[Path], Path | None], since: float
+) -> list[tuple[Path, float]]:
+    """The ``document`` of each ``folder/<id>/`` written since ``since`` (epoch seconds), with
+    that time."""
     found = []
     for bundle_id in _visible(folder):
-        path = folder / bundle_id / name
-        with contextlib.suppress(OSError):
-            mtime = path.stat().st_mtime
-            if mtime >= since:
-                found.append((path, mtime))
-    return found
-
-
-def _recent_failures(folder: Path, since: float) -> list[tuple[Path, float]]:
-    """The daemon's error document of each ``failed/<id>/`` written since ``since``, with
-    that time: ``mapserver-error.yaml`` when the bundle brought an ``error.yaml`` of its own
-    (:func:`mapserver.outbox.daemon_error`), whose time may be a robot's (rsync -a keeps it)."""
-    found = []
-    for bundle_id in _visible(folder):
-        path = daemon_error(folder / bundle_id)
+        path = document(folder / bundle_id)
         if path is None:
             continue
         with contextlib.suppress(OSError):
