@@ -98,9 +98,20 @@ def _overlap(window: Window, tr: int, tc: int) -> tuple[Slices, Slices]:
 def _tiles_over(window: Window) -> Iterator[tuple[int, int, Slices, Slices]]:
     """``(tile_row, tile_col, in_window, in_tile)`` of every tile the window overlaps: the
     overlap as slices of a (window.rows, window.cols) array and of a (TILE, TILE) one."""
-    for tr in range(window.row0 // TILE, (window.row0 + window.rows - 1) // TILE + 1):
-        for tc in range(window.col0 // TILE, (window.col0 + window.cols - 1) // TILE + 1):
+    tr0, tc0, tr1, tc1 = _tile_range(window)
+    for tr in range(tr0, tr1 + 1):
+        for tc in range(tc0, tc1 + 1):
             yield tr, tc, *_overlap(window, tr, tc)
+
+
+def _tile_range(window: Window) -> tuple[int, int, int, int]:
+    """(first tile row, first tile col, last tile row, last tile col) the window overlaps."""
+    return (
+        window.row0 // TILE,
+        window.col0 // TILE,
+        (window.row0 + window.rows - 1) // TILE,
+        (window.col0 + window.cols - 1) // TILE,
+    )
 
 
 def pack_tiles(
@@ -287,9 +298,7 @@ def observations(
     ``until`` and after ``after`` (None: no bound), newest first or oldest first, each over the
     whole window (cells of tiles it did not observe: neither occupied nor free). Read as the
     caller goes: a caller that stops early reads no further."""
-    tr0, tc0 = window.row0 // TILE, window.col0 // TILE
-    tr1 = (window.row0 + window.rows - 1) // TILE
-    tc1 = (window.col0 + window.cols - 1) // TILE
+    tr0, tc0, tr1, tc1 = _tile_range(window)
     order = "DESC" if newest_first else "ASC"
     sql = (
         "SELECT stamp, bundle_id, robot, tile_row, tile_col, data FROM observations "
