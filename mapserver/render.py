@@ -5,6 +5,7 @@ global map."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -168,20 +169,24 @@ def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Dif
 
 def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
     """``image`` (H, W, 3) BGR with a band across the top saying ``text`` in white on dark red:
-    a new (H + band, W, 3) image, lines broken at "; " where the text is wider than the image."""
-    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1
+    a new (H + band, W, 3) image, its lines broken at "; " where the text is wider than the
+    image, and a part still too wide broken between words; the letters shrink only when one
+    word is wider than the image."""
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.6
     width = image.shape[1]
-    lines: list[str] = []
-    for part in text.split("; "):
-        candidate = f"{lines[-1]}; {part}" if lines else part
-        fits = cv2.getTextSize(candidate, font, scale, thick)[0][0] <= width - 16
-        if lines and fits:
-            lines[-1] = candidate
-        else:
-            lines.append(part)
-    widest = max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in lines)
-    if widest > width - 16:  # a narrow image: smaller letters rather than cut ones
-        scale *= max((width - 16) / widest, 0.3)
+    room = width - 16
+
+    def thickness(at_scale: float) -> int:
+        return 2 if at_scale >= 0.5 else 1
+
+    def text_px(line: str, at_scale: float) -> int:
+        # Measured as drawn: the bold stroke adds width, and Hershey widths do not scale
+        # linearly (session 55: a partly trusted banner ran 30 px off an 824 px overlay).
+        return int(cv2.getTextSize(line, font, at_scale, thickness(at_scale))[0][0])
+
+    lines = _wrapped(text, lambda line: text_px(line, scale) <= room)
+    while scale > 0.3 and max(text_px(t, scale) for t in lines) > room:
+        scale = round(scale - 0.05, 2)  # a narrow image: smaller letters rather than cut ones
     line_px = round(26 * scale / 0.6)
     band = np.empty((line_px * len(lines) + 10, width, 3), np.uint8)
     band[:] = BANNER
@@ -193,10 +198,29 @@ def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
             font,
             scale,
             (255, 255, 255),
-            thick + 1 if scale >= 0.5 else thick,
+            thickness(scale),
             cv2.LINE_AA,
         )
     return np.concatenate([band, image], axis=0)
+
+
+def _wrapped(text: str, fits: Callable[[str], bool]) -> list[str]:
+    """``text`` in lines that each ``fits``: parts joined by "; " while they fit, a part that
+    does not fit alone broken between words (a word wider than a line stays whole)."""
+    lines: list[str] = []
+    for part in text.split("; "):
+        if lines and fits(f"{lines[-1]}; {part}"):
+            lines[-1] = f"{lines[-1]}; {part}"
+            continue
+        line = ""
+        for word in part.split(" "):
+            if line and not fits(f"{line} {word}"):
+                lines.append(line)
+                line = word
+            else:
+                line = f"{line} {word}" if line else word
+        lines.append(line)
+    return lines
 
 
 def overlay(
