@@ -1373,6 +1373,10 @@ _STEP_M = 0.15
 # ... and stays back over this distance beyond the step, seen at this share of it at least...
 _BEYOND_STEP_M = 0.3
 _IN_PLACE_SHARE = 0.6
+# ... a face seen back in place anywhere from this far behind the global wall's face (a wall
+# drawn thicker than a lidar sees it, a floor plan's thickened line: the local face lies
+# 0.1-0.2 m inside it) out to the component...
+_FACE_BEHIND_M = 0.3
 # ... and at most this share of the known cells between it and the wall seen free (the robot
 # did not see behind it: a face drawn twice by drift has the floor seen between its lines).
 _BEHIND_FREE_SHARE = 0.25
@@ -1429,7 +1433,7 @@ def _stands_in_front(
         return False
     # The local face's profile beyond each end: per whole cell along the wall, the outermost
     # local wall cell in the band from the global face out to the component.
-    band = (uu > -1.5) & (uu <= farthest + 1) & (local_state == OCCUPIED)
+    band = (uu > -_FACE_BEHIND_M / res) & (uu <= farthest + 1) & (local_state == OCCUPIED)
     out_px = depth - 1  # still standing out (a cell of slack)
     back_px = out_px - max(2.0, _STEP_BACK_M / res)
     step_px, run_px = max(1, round(_STEP_M / res)), max(2, round(_BEYOND_STEP_M / res))

@@ -632,6 +632,29 @@ def test_an_obstacle_standing_in_front_of_a_wall_is_kept() -> None:
     ).any()
 
 
+def test_shelves_in_front_of_a_wall_drawn_thicker_than_seen_are_kept() -> None:
+    # A floor plan's wall thickened beyond what a lidar sees (session 55, mis7302's
+    # gen-07-floorplan: a 3.7 m lining 0.2 m out, lost): the local face lies 0.15 m inside
+    # the drawn one beside the shelves' ends; it is the face in place, and they stand.
+    walls = np.zeros((120, 120), bool)
+    walls[34:43, :] = True  # drawn face at row 42, its outer side row 43
+    local = np.full(walls.shape, FREE, np.uint8)
+    local[:40, :] = UNKNOWN
+    local[40, :] = OCCUPIED  # the face as seen: 3 cells inside the drawn one
+    local[41:47, 30:90] = UNKNOWN  # behind the shelves, unseen
+    local[47, 30:90] = OCCUPIED  # their face, 0.2 m out from the drawn face
+    added = np.zeros(walls.shape, bool)
+    added[47, 30:90] = True
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35, local_state=local)
+    assert np.array_equal(kept, added)
+    # Drawn behind the face by more than a wall's drawing grows (0.3 m): no face in place.
+    local[40, :] = UNKNOWN
+    local[36, :] = OCCUPIED
+    assert not drop_along_walls(
+        added, walls, resolution=RES, within_m=0.35, local_state=local
+    ).any()
+
+
 def test_a_face_drawn_twice_with_the_floor_seen_between_is_dropped() -> None:
     # A pass with drift left in it draws the face again 0.2 m out; another pass saw the floor
     # between the two lines free: the same steps at the ends, but nothing stands there.
