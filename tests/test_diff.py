@@ -662,6 +662,30 @@ def test_shelves_in_front_of_a_wall_drawn_thicker_than_seen_are_kept() -> None:
     ).any()
 
 
+def test_shelves_drawn_dashed_are_judged_as_one_strip() -> None:
+    # Session 55 (mis4040's gen-16-mislocalized): a wall 2.8 m long built in front of another,
+    # drawn dotted, its added cells in dashes of 0.6-0.9 m: each too short to tell alone, all
+    # dropped. Dashes within 0.2 m of each other are one strip, and it stands.
+    walls = _hall()
+    offset = np.zeros(120, int)
+    offset[30:90] = 4
+    local, added = _wall_seen(offset, behind=UNKNOWN)
+    for gap in (44, 59, 74):  # three gaps of two cells: four dashes of 13-14 cells
+        local[47, gap : gap + 2] = UNKNOWN
+        added[47, gap : gap + 2] = False
+    one = added.copy()
+    one[:, 44:] = False
+    assert not drop_along_walls(one, walls, resolution=RES, within_m=0.35, local_state=local).any()
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35, local_state=local)
+    assert np.array_equal(kept, added)
+    # The same dashes with the floor seen free between them and the wall: a face drawn twice.
+    local[43:47, 30:90] = FREE
+    local[43, 30:90] = OCCUPIED
+    assert not drop_along_walls(
+        added, walls, resolution=RES, within_m=0.35, local_state=local
+    ).any()
+
+
 def test_a_face_drawn_twice_with_the_floor_seen_between_is_dropped() -> None:
     # A pass with drift left in it draws the face again 0.2 m out; another pass saw the floor
     # between the two lines free: the same steps at the ends, but nothing stands there.
