@@ -28,6 +28,7 @@ from mapserver.diff import (
     LineRules,
     _across_m,
     _deep_inside,
+    _groups_within,
     distance_to,
     drop_along_walls,
     drop_small,
@@ -684,6 +685,30 @@ def test_shelves_drawn_dashed_are_judged_as_one_strip() -> None:
     assert not drop_along_walls(
         added, walls, resolution=RES, within_m=0.35, local_state=local
     ).any()
+
+
+def test_components_group_when_a_cell_of_each_lies_within_reach() -> None:
+    def dash(row: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        cols = np.arange(c0, c1)
+        return np.full(len(cols), row), cols
+
+    components = [
+        dash(10, 0, 10),  # 0
+        dash(10, 13, 20),  # 1: 4 cells on from 0's last
+        dash(10, 23, 30),  # 2: 4 on from 1's (a chain: with 0 through 1)
+        dash(10, 35, 40),  # 3: 6 on from 2's, too far
+        dash(13, 38, 45),  # 4: 3 rows and 0 columns from 3 (diagonal in buckets)
+        dash(5000, 5000, 5010),  # 5: far away, alone
+    ]
+    groups = sorted(sorted(g) for g in _groups_within(components, 4.0))
+    assert groups == [[0, 1, 2], [3, 4], [5]]
+    assert sorted(sorted(g) for g in _groups_within(components, 3.0)) == [
+        [0],
+        [1],
+        [2],
+        [3, 4],
+        [5],
+    ]
 
 
 def test_a_face_drawn_twice_with_the_floor_seen_between_is_dropped() -> None:
