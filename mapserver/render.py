@@ -171,7 +171,7 @@ def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
     """``image`` (H, W, 3) BGR with a band across the top saying ``text`` in white on dark red:
     a new (H + band, W, 3) image, its lines broken at "; " where the text is wider than the
     image, and a part still too wide broken between words; the letters shrink only when one
-    word is wider than the image."""
+    word is wider than the image (down to a third of their size: a word wider still is cut)."""
     font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.6
     width = image.shape[1]
     room = width - 16
@@ -184,9 +184,15 @@ def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
         # linearly (session 55: a partly trusted banner ran 30 px off an 824 px overlay).
         return int(cv2.getTextSize(line, font, at_scale, thickness(at_scale))[0][0])
 
-    lines = _wrapped(text, lambda line: text_px(line, scale) <= room)
-    while scale > 0.3 and max(text_px(t, scale) for t in lines) > room:
-        scale = round(scale - 0.05, 2)  # a narrow image: smaller letters rather than cut ones
+    def lines_at(at_scale: float) -> list[str]:
+        return _wrapped(text, lambda line: text_px(line, at_scale) <= room)
+
+    lines = lines_at(scale)
+    while scale > 0.2 and max(text_px(t, scale) for t in lines) > room:
+        # A word wider than a narrow image: smaller letters rather than cut ones, the lines
+        # broken again at that size.
+        scale = round(scale - 0.05, 2)
+        lines = lines_at(scale)
     line_px = round(26 * scale / 0.6)
     band = np.empty((line_px * len(lines) + 10, width, 3), np.uint8)
     band[:] = BANNER

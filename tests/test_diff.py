@@ -27,6 +27,7 @@ from mapserver.diff import (
     DiffMasks,
     LineRules,
     _across_m,
+    _dashes_in_front,
     _deep_inside,
     _groups_within,
     distance_to,
@@ -655,9 +656,10 @@ def test_shelves_in_front_of_a_wall_drawn_thicker_than_seen_are_kept() -> None:
     added[47, 30:90] = True
     kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35, local_state=local)
     assert np.array_equal(kept, added)
-    # Drawn behind the face by more than a wall's drawing grows (0.3 m): no face in place.
+    # Seen 0.4 m behind the drawn face, more than a wall's drawing grows (0.3 m): no face in
+    # place beside the ends, and the shelves go as the wall displaced.
     local[40, :] = UNKNOWN
-    local[36, :] = OCCUPIED
+    local[35, :] = OCCUPIED
     assert not drop_along_walls(
         added, walls, resolution=RES, within_m=0.35, local_state=local
     ).any()
@@ -709,6 +711,42 @@ def test_components_group_when_a_cell_of_each_lies_within_reach() -> None:
         [3, 4],
         [5],
     ]
+
+
+def test_dashes_chained_round_a_room_are_no_strip_and_not_asked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Session 55's review: dashes of faces displaced along all four walls of a room chain
+    # round its corners into one group, whose box the strip check would span whole (2.4 s and
+    # 660 MB for a room 200 m square). Spread across its own line far more than a strip's
+    # distance from its wall, it is not asked; a row of dashes along one wall still is.
+    import mapserver.diff as diff_module
+
+    asked: list[int] = []
+    real = diff_module._stands_in_front
+
+    def counting(rows, cols, *args):  # type: ignore[no-untyped-def]
+        asked.append(len(rows))
+        return real(rows, cols, *args)
+
+    monkeypatch.setattr(diff_module, "_stands_in_front", counting)
+    n = 200
+    walls = np.zeros((n, n), bool)
+    walls[:3, :] = walls[-3:, :] = walls[:, :3] = walls[:, -3:] = True
+    local = np.full((n, n), FREE, np.uint8)
+    ring = np.zeros((n, n), bool)
+    ring[6, 6:-6] = ring[-7, 6:-6] = ring[6:-6, 6] = ring[6:-6, -7] = True
+    ring[np.arange(n) % 12 >= 10, :] = False  # dashes, 2 cells apart
+    ring[:, np.arange(n) % 12 >= 10] = False
+    labels = cv2.connectedComponents(ring.view(np.uint8), connectivity=8)[1]
+    dashes = [np.nonzero(labels == k) for k in range(1, int(labels.max()) + 1)]
+    assert len(dashes) > 40
+    assert _dashes_in_front(dashes, walls, local, RES, 0.35) == []
+    assert asked == []
+    one_wall = [d for d in dashes if (d[0] == 6).all()]
+    assert len(one_wall) > 10
+    _dashes_in_front(one_wall, walls, local, RES, 0.35)
+    assert len(asked) == 1 and asked[0] == sum(len(r) for r, _ in one_wall)
 
 
 def test_a_face_drawn_twice_with_the_floor_seen_between_is_dropped() -> None:
