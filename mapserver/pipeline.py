@@ -1130,9 +1130,14 @@ def _result_doc(
     found: _Found,
     warnings: list[str],
     timings_ms: dict[str, float],
-    observation: Observation | None,
+    link: MapLink | None,
+    *,
+    observed: Observation | None,
 ) -> dict[str, Any]:
-    """The ``result.yaml`` document (contract section 3), stamped with the time now."""
+    """The ``result.yaml`` document (contract section 3), stamped with the time now. On a
+    stored map (``link``), its name and the version the robot navigated on (FORMATS.md section
+    7); the current version too when the bundle adds nothing to the map (``observed`` None: its
+    alignment not trusted), else the store's update gives it, which may publish one."""
     files, global_map = inputs.files, inputs.global_map
     region, differences = found.region, found.differences
     image_name = global_map.image.name if global_map.image is not None else ""
@@ -1158,9 +1163,10 @@ def _result_doc(
         "warnings": warnings,
         "timings_ms": dict(timings_ms),
     }
-    if observation is not None:
-        result["map"]["name"] = observation.map_name
-        result["map"]["version"] = observation.bundle_version
+    if link is not None:
+        result["map"].update(name=link.name, version=link.bundle_version)
+        if observed is None:
+            result["map"]["current_version"] = link.current_version
     return result
 
 
@@ -1286,13 +1292,9 @@ def process_bundle(
         warnings += link_warnings + observe_warnings
 
     timings = stages.timings_ms
-    result = _result_doc(bundle_id, inputs, alignment_doc, found, warnings, timings, observation)
-    if link is not None and observation is None:
-        # On a stored map though it adds nothing (its alignment not trusted): which map and
-        # version, as for any bundle on it (FORMATS.md section 7).
-        result["map"].update(
-            name=link.name, version=link.bundle_version, current_version=link.current_version
-        )
+    result = _result_doc(
+        bundle_id, inputs, alignment_doc, found, warnings, timings, link, observed=observation
+    )
     log.info(
         "%s: done, %d differences, alignment %s score %.2f, %.0f ms",
         bundle_id,
