@@ -535,7 +535,8 @@ class ChangeTracker:
         ).fetchone()
         self._dirty.add(cid)
         note = f"seen as before by {bundle_id} ({robot}, {stamp})"
-        expire = bool(stamp >= last_observed)
+        latest = bool(stamp >= last_observed)
+        expire = latest
         if not expire and stamp > first_seen:
             # Late, after the first sighting: with none after it, in stamp order it was the
             # latest word on the change (the bundle of a later hour that observed the area
@@ -553,9 +554,9 @@ class ChangeTracker:
             "note = CASE WHEN ? THEN ? ELSE note END, updated_at = ? WHERE id = ?",
             (
                 int(stamp > first_seen),
-                stamp >= last_observed,
+                latest,
                 stamp,
-                stamp >= last_observed,
+                latest,
                 expire,
                 expire,
                 note,
