@@ -31,6 +31,8 @@ from tests.fleet_support import (
 )
 
 AUTO = UpdateConfig(mode="auto")
+# A gap cut in the hall's top wall (rows 8-12): 0.8 m of it.
+GAP = (slice(8, 13), slice(200, 216))
 REVIEW = UpdateConfig(mode="review")
 
 
@@ -724,7 +726,7 @@ def test_a_gap_cut_in_a_wall_shows_beside_the_wall_ends_the_map_still_has(
     # removals of wall pieces in generated histories never confirmed; session 54).
     store = new_store(tmp_path, hall)
     robot = Robot()
-    gap = (slice(8, 13), slice(200, 216))  # 0.8 m of the hall's top wall
+    gap = GAP
     store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
     store.apply(robot.observe(8, removed=(gap,)))  # seen, not reported
     last = store.apply(robot.observe(16, removed=(gap,)))
@@ -739,7 +741,7 @@ def test_a_current_version_gone_from_disk_does_not_stop_the_judging(
 ) -> None:
     store = new_store(tmp_path, hall)
     robot = Robot()
-    gap = (slice(8, 13), slice(200, 216))
+    gap = GAP
     store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
     (tmp_path / "maps" / "hall" / "v0001.pgm").unlink()  # an operator's mistake
     update = store.apply(robot.observe(8, removed=(gap,)))  # judged as before session 54
@@ -751,7 +753,7 @@ def test_a_current_version_gone_from_disk_does_not_stop_the_judging(
 def test_a_gap_seen_walled_up_again_is_as_before(tmp_path: Path, hall: Path) -> None:
     store = new_store(tmp_path, hall)
     robot = Robot()
-    gap = (slice(8, 13), slice(200, 216))
+    gap = GAP
     store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
     store.apply(robot.observe(8))  # the wall whole again: its own cells occupied
     (change,) = store.changes("hall")
@@ -804,7 +806,7 @@ def test_a_current_version_of_another_size_does_not_fail_the_bundle(
 ) -> None:
     store = new_store(tmp_path, hall)
     robot = Robot()
-    gap = (slice(8, 13), slice(200, 216))
+    gap = GAP
     store.apply(robot.observe(0, removed=(gap,), found=(("removed", gap),)))
     monkeypatch.setattr(store, "_current_state", lambda *a: building()[:100, :100])
     store.apply(robot.observe(8, removed=(gap,)))
