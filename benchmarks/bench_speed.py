@@ -67,7 +67,9 @@ import yaml
 import mapserver
 from mapserver import synth
 from mapserver.bundle import read_manifest
+from mapserver.cluster import cluster_mask
 from mapserver.config import Config
+from mapserver.diff import drop_along_walls
 from mapserver.grid import Grid, warp_matrix
 from mapserver.maps import FREE, OCCUPIED, OccupancyMap, from_states, load_map
 from mapserver.pipeline import GLOBAL_MAPS, process_bundle
@@ -89,6 +91,10 @@ TARGET_SCALING = 2.0
 TARGET_DRAIN = 0.8
 # Target of issue 12: a 300 m session drifting one way, aligned in pieces, in-process.
 TARGET_DRIFTING_S = 1.5
+
+# A pathological difference (tens of thousands of dashes along walls): a stage's cost per dash
+# at four times the dashes, against the cost at one time (linear: 1).
+TARGET_PER_DASH_GROWTH = 1.5
 
 # The data's recipe; a change here (or in the synth package) makes --out regenerate the data.
 RECIPE: dict[str, Any] = {
@@ -519,6 +525,40 @@ def naive_process(
 # --------------------------------------------------------------------------------------------
 
 
+def time_dashes(size: int) -> tuple[int, float, float]:
+    """Two stages on a ``size`` x ``size`` grid of rooms 5 m square whose every wall has a
+    dotted copy 0.15 m in front of it (dashes 0.2 m long every 0.4 m, each a component: a
+    drifted map of a large building, seen displaced all along): the diff's wall filter
+    (:func:`mapserver.diff.drop_along_walls`, with the local map) and the clustering of the
+    dashes (:func:`mapserver.cluster.cluster_mask`, each dash a cluster). Returns the dashes
+    and the seconds of each (best of 3)."""
+    walls = np.zeros((size, size), bool)
+    walls[::100, :] = True
+    walls[:, ::100] = True
+    added = np.zeros((size, size), bool)
+    for c0 in range(0, size, 8):
+        added[3::100, c0 : c0 + 4] = True
+    local = np.where(walls, OCCUPIED, FREE).astype(np.uint8)
+    grid = Grid(0.0, 0.0, RESOLUTION, size, size)
+    n = cv2.connectedComponents(added.view(np.uint8))[0] - 1
+
+    def best(run: Callable[[], object]) -> float:
+        seconds = math.inf
+        for _ in range(3):
+            start = time.perf_counter()
+            run()
+            seconds = min(seconds, time.perf_counter() - start)
+        return seconds
+
+    walls_s = best(
+        lambda: drop_along_walls(
+            added, walls, resolution=RESOLUTION, within_m=0.35, local_state=local
+        )
+    )
+    cluster_s = best(lambda: cluster_mask(added, grid, "added", eps_m=0.1, min_samples=1))
+    return n, walls_s, cluster_s
+
+
 def daemon_available() -> bool:
     try:
         done = subprocess.run(
@@ -738,6 +778,31 @@ def main(argv: Sequence[str] | None = None) -> int:
                 drift_runs.wall <= TARGET_DRIFTING_S,
             )
         )
+
+        # 1c. Two stages on a pathological difference (session 56: quadratic before).
+        say()
+        say(
+            "== 1c. the diff's wall filter and the clustering on dashes along every wall (best of 3)"
+        )
+        per_dash: dict[str, list[float]] = {"wall filter": [], "clustering": []}
+        for size in (2000, 4000):
+            n, walls_s, cluster_s = time_dashes(size)
+            per_dash["wall filter"].append(walls_s / n)
+            per_dash["clustering"].append(cluster_s / n)
+            say(
+                f"  {size}^2 px, {n} dashes: wall filter {walls_s:.2f} s "
+                f"({walls_s / n * 1e6:.0f} us each), clustering {cluster_s:.2f} s "
+                f"({cluster_s / n * 1e6:.0f} us each)"
+            )
+        for name, (at_1x, at_4x) in per_dash.items():
+            checks.append(
+                Check(
+                    f"{name}, cost per dash at 4x the dashes",
+                    f"x{at_4x / at_1x:.2f}",
+                    f"<= x{TARGET_PER_DASH_GROWTH}",
+                    at_4x / at_1x <= TARGET_PER_DASH_GROWTH,
+                )
+            )
 
         # 2. Peak RSS in a fresh interpreter.
         say()

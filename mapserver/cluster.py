@@ -92,10 +92,13 @@ def cluster_mask(
     # grid a cell or two of evidence would otherwise keep any cluster).
     evidence_floor_m2 = max(min_evidence_m2, min_area_m2)
     out = []
-    for label in np.unique(labels):
-        if label < 0:
+    # Each cluster's pixels, by label sorted once (a mask over every pixel per cluster was
+    # quadratic: tens of thousands of clusters on a badly drifted map of a large building).
+    order = np.argsort(labels, kind="stable")
+    starts = np.flatnonzero(np.r_[True, labels[order][1:] != labels[order][:-1]])
+    for members in np.split(order, starts[1:]):
+        if labels[members[0]] < 0:
             continue
-        members = labels == label
         pts = xy[members]
         area = len(pts) * cell_m2
         if _short_of(area, min_area_m2) and not _whole_enough(
@@ -115,7 +118,7 @@ def cluster_mask(
             # With no evidence at all (a share of 0 asked for), it is reported whole.
             if shown.any():
                 reach_px = eps_m / grid.resolution
-                members[members] = _near_evidence(rows[members], cols[members], shown, reach_px)
+                members = members[_near_evidence(rows[members], cols[members], shown, reach_px)]
                 pts = xy[members]
                 area = len(pts) * cell_m2
         lo, hi = pts.min(axis=0) - half, pts.max(axis=0) + half

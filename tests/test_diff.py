@@ -153,6 +153,30 @@ def test_cluster_merges_fragments_closer_than_eps(engine: Engine) -> None:
     assert len(found) == 2
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_many_clusters_each_get_exactly_their_own_pixels(engine: Engine) -> None:
+    # 400 clusters whose pixels interleave in row order (L shapes side by side, each 0.25 m
+    # apart), plus DBSCAN noise: each is reported with its own pixels and box (session 56
+    # took each cluster's pixels by label sorted once, not by a mask over all per cluster).
+    grid = Grid(0.0, 0.0, 0.05, 200, 200)
+    mask = np.zeros(grid.shape, bool)
+    for r in range(0, 200, 10):
+        for c in range(0, 200, 10):
+            mask[r : r + 5, c] = True  # an L: 5 cells down ...
+            mask[r + 4, c : c + 4] = True  # ... and 4 across its foot
+    mask[::10, 7::10] = True  # lone pixels: noise with min_samples 3
+    found = cluster_mask(mask, grid, "added", eps_m=0.12, min_samples=3, engine=engine)
+    assert len(found) == 400
+    for d in found:
+        assert d.pixels == 8 and d.cells is not None
+        rows, cols = d.cells[:, 0], d.cells[:, 1]
+        r, c = int(rows.min()), int(cols.min())
+        assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == sorted(
+            [(r + k, c) for k in range(5)] + [(r + 4, c + k) for k in range(1, 4)]
+        )
+        assert d.bbox[2] - d.bbox[0] == pytest.approx(0.2)
+
+
 def test_a_removed_obstacle_is_reported_without_the_face_strip_it_touches() -> None:
     """A block seen gone (its cells evidence) touches a strip one cell wide running 1.5 m
     along the wall's face, free without evidence (grazing rays): one cluster, kept for its
@@ -639,6 +663,24 @@ def test_an_obstacle_standing_in_front_of_a_wall_is_kept() -> None:
     assert not drop_along_walls(
         added, walls, resolution=RES, within_m=0.35, local_state=local
     ).any()
+
+
+def test_many_strips_along_a_wall_are_each_judged_on_their_own_cells() -> None:
+    # More components than get a window each (70 shelves 3 m long, 70 stubs 0.6 m long, one
+    # window around them all): each is judged on its own cells (session 56 took them out of
+    # the window by label once, sorted, instead of a mask over every cell per label).
+    periods = 70
+    offset = np.zeros(120 * periods, int)
+    for p in range(periods):
+        offset[120 * p + 10 : 120 * p + 70] = 4  # shelves: stand
+        offset[120 * p + 90 : 120 * p + 102] = 4  # a stub: too short to tell, dropped
+    local, added = _wall_seen(offset, behind=UNKNOWN)
+    walls = np.zeros(local.shape, bool)
+    walls[40:43, :] = True
+    kept = drop_along_walls(added, walls, resolution=RES, within_m=0.35, local_state=local)
+    shelves = added & (np.arange(added.shape[1]) % 120 < 80)[None, :]
+    assert np.array_equal(kept, shelves)
+    assert np.count_nonzero(shelves) == 60 * periods
 
 
 def test_shelves_in_front_of_a_wall_drawn_thicker_than_seen_are_kept() -> None:
