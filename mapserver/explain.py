@@ -164,6 +164,19 @@ _PASS_SHARE = 0.8
 # sets), down on 3 by 0.002-0.005, the rest as before. Not for a removed one: its free cells
 # are drawn by rays crossing from afar, and there the census was 3 real against 10 others.
 _PASS_NEAR_RATIO = 4.0
+# A removed one that stood alone (no local wall within 0.5 m of its cells), which the robot's
+# own run saw from 2.5 m or nearer across cells seen free, is no fold of a pass whose run came
+# more than four times as far (piecewise.PlainSight): through any transform that moves it its
+# own width, a structure alone lands on open floor, so that landing tells nothing; the run
+# beside it saw the floor where it stood. Session 56: a column 0.7 m square seen gone from
+# 1.3 m, every cell of it free and the floor all round, explained by a pass that drove 11.8 m
+# away (its transform 0.9 m off there); a block 0.55 x 2.55 m seen gone from 1.0 m, by a pass
+# 4.3 m away (1.7 m off). Over the 26 drifting sets: those 2 changes found, no false positive
+# (the run within 2.5 m and its line of sight alone: 4 more changes and 4 more false positives,
+# small removed pieces of a column drawn again 0.6 m off beside them; the same with a
+# limit of 4 times the run for every removed difference, the reach's half the floor of the
+# limit as for added ones: 4 more changes, 8 more false positives).
+_PASS_PLAIN_SIGHT = piecewise.PlainSight(run_m=2.5, ratio=4.0, clear_m=0.5)
 # What another pass drew of the building is mostly a line: a wall's face, where its rays
 # ended. Through that pass's transform it lands on a global wall within twice the differences'
 # tolerance (the drift left in its piece). A real obstacle beside a wall is laid there too by
@@ -536,6 +549,7 @@ def _seen_on_another_pass(
         share=_PASS_SHARE,
         open_there=open_there,
         near_ratio=_PASS_NEAR_RATIO if diff.kind == "added" else math.inf,
+        plain_sight=None if diff.kind == "added" else _PASS_PLAIN_SIGHT,
     )
 
 

@@ -30,7 +30,7 @@ from mapserver import align as align_stage
 from mapserver.deform import Landed, warp_local_box
 from mapserver.geometry import Transform2D, wrap_angle
 from mapserver.geometry import fit_rigid as fit_rigid_points
-from mapserver.grid import Grid, any_in_blocks, densify, route_distance
+from mapserver.grid import Grid, any_in_blocks, box_of_cells, densify, route_distance
 from mapserver.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 FloatArray = NDArray[np.float64]
@@ -497,6 +497,19 @@ def departure(local: OccupancyMap, pieces: Pieces, transform: Transform2D) -> fl
     return worst
 
 
+@dataclass(frozen=True)
+class PlainSight:
+    """When the robot's own run saw a difference plainly: its nearest pose within ``run_m`` of
+    the difference's centre, a straight line of cells seen free from that pose to the
+    difference's nearest cell, and no local wall within ``clear_m`` of any of its cells (a
+    structure standing alone, seen gone with the floor all round). Then a pass whose run came
+    more than ``ratio`` times as far from it explains nothing."""
+
+    run_m: float
+    ratio: float
+    clear_m: float
+
+
 def another_pass_explains(
     local: OccupancyMap,
     pieces: Pieces,
@@ -508,6 +521,7 @@ def another_pass_explains(
     share: float = 0.8,
     open_there: Callable[[FloatArray], NDArray[np.bool_]] | None = None,
     near_ratio: float = math.inf,
+    plain_sight: PlainSight | None = None,
 ) -> bool:
     """Whether a difference at nav2 points ``xy`` (N, 2) is a fold: seen on another pass.
 
@@ -543,6 +557,13 @@ def another_pass_explains(
     them only when its run came no more than ``near_ratio`` times as far from them as the
     piece's own run (both from their centre, in the slam frame; ``inf``, the default, or a
     piece without a run: no such limit).
+
+    ``plain_sight``: where the piece's own run saw them plainly (:class:`PlainSight`, asked
+    in the slam frame), a pass whose run came more than its ``ratio`` times as far from them
+    as that run explains nothing, however near. A structure standing alone lands on open
+    floor through any transform that moves it its own width, so there the landing says
+    nothing of a fold; what the robot saw from a pose beside it, looking at it across open
+    floor, does: it saw the floor where the structure stood.
     """
     owned = _owner(local, pieces, xy)
     if owned is None:
@@ -553,6 +574,12 @@ def another_pass_explains(
     own_m = _run_distance_m(owner.run, centre) if len(owner.run) else math.inf
     if math.isfinite(own_m) and math.isfinite(near_ratio):
         limit_m = min(reach_m, max(reach_m / 2, near_ratio * own_m))
+    if (
+        plain_sight is not None
+        and own_m <= plain_sight.run_m
+        and _in_plain_sight(local, owner.run, slam, plain_sight.clear_m)
+    ):
+        limit_m = min(limit_m, plain_sight.ratio * own_m)
     for q in pieces.pieces:
         if not q.aligned or q.index == owner.index or len(q.run) < 2:
             continue
@@ -570,6 +597,35 @@ def another_pass_explains(
                 continue
         return True
     return False
+
+
+def _in_plain_sight(local: OccupancyMap, run: FloatArray, slam: FloatArray, clear_m: float) -> bool:
+    """Whether the pose of ``run`` (M, 2) nearest the centre of slam points ``slam`` (N, 2)
+    saw them across open floor: every cell on the straight line from it to the nearest of
+    them seen free in ``local`` (sampled every half cell), and no cell of ``local`` seen
+    occupied within ``clear_m`` of any of them (worked out in the box around them)."""
+    pose = run[int(np.argmin(np.hypot(*(run - slam.mean(axis=0)).T)))]
+    target = slam[int(np.argmin(np.hypot(*(slam - pose).T)))]
+    grid = Grid.of_map(local)
+    steps = max(2, math.ceil(float(np.hypot(*(target - pose))) / (local.resolution / 2)) + 1)
+    t = np.linspace(0.0, 1.0, steps)[:, None]
+    line = pose[None, :] * (1 - t) + target[None, :] * t
+    if not np.all(grid.sample(local.state, line, UNKNOWN) == FREE):
+        return False
+    px = np.rint(grid.to_pixel(slam)).astype(np.intp)
+    rows, cols = px[:, 1], px[:, 0]
+    h, w = local.state.shape
+    on = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    if not on.any():
+        return False
+    rows, cols = rows[on], cols[on]
+    k = max(1, math.ceil(clear_m / local.resolution))
+    box = box_of_cells(rows, cols, k, local.state.shape)
+    walls = local.state[box] == OCCUPIED
+    if not walls.any():
+        return True
+    far = cv2.distanceTransform((~walls).view(np.uint8), cv2.DIST_L2, 5) * local.resolution
+    return bool(np.all(far[rows - box[0].start, cols - box[1].start] > clear_m))
 
 
 def _run_distance_m(run: FloatArray, point: FloatArray) -> float:

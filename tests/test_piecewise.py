@@ -971,6 +971,63 @@ def test_a_pass_much_farther_than_the_robots_own_does_not_explain_an_obstacle() 
     assert piecewise.another_pass_explains(*close_own, xy, wall, reach_m=5.0, near_ratio=4.0)
 
 
+def _cell(local: OccupancyMap, x: float, y: float) -> tuple[int, int]:
+    """(row, col) of the local map's cell at slam point (x, y)."""
+    col, row = np.rint(Grid.of_map(local).to_pixel(np.array([[x, y]])))[0]
+    return int(row), int(col)
+
+
+def test_a_structure_alone_seen_gone_from_beside_it_is_no_fold_of_a_far_pass() -> None:
+    """A removed column's cells at (7.5..8.5, 5), the whole map seen free: through any pass's
+    transform they land on open floor, and that pass did not draw the place open (a fold, as
+    far as the landing tells). With ``plain_sight``, the piece's own run 1 m from them (y = 4)
+    and the other pass's 6 m (x from 14 m): the robot saw the floor where the column stood,
+    from beside it, and the far pass explains nothing. One as near as four times the robot's
+    run still does; so does any pass when a local wall stands within 0.5 m of the cells (the
+    column drawn again beside its place), when the line from the robot's pose to the cells
+    crosses a wall or unseen cells, or when the robot's run came no nearer than 2.5 m."""
+    xy = np.column_stack([np.linspace(7.5, 8.5, 11), np.full(11, 5.0)])
+
+    def on_floor(points: np.ndarray, _run_m: float) -> np.ndarray:
+        return np.ones(len(points), bool)
+
+    def not_open(points: np.ndarray) -> np.ndarray:
+        return np.zeros(len(points), bool)
+
+    sight = piecewise.PlainSight(run_m=2.5, ratio=4.0, clear_m=0.5)
+
+    def explains(local: OccupancyMap, pieces: piecewise.Pieces, **kw: object) -> bool:
+        return piecewise.another_pass_explains(
+            local,
+            pieces,
+            xy,
+            on_floor,
+            open_there=not_open,
+            **kw,  # type: ignore[arg-type]
+        )
+
+    local, pieces = _fold_pieces(run_y=4.0, other_run_x=(14.0, 20.0))
+    assert explains(local, pieces)
+    assert not explains(local, pieces, plain_sight=sight)
+    # A pass within four times the robot's run (4 m: its run from x = 12 m) still explains.
+    assert explains(*_fold_pieces(run_y=4.0, other_run_x=(12.0, 20.0)), plain_sight=sight)
+    # A local wall 0.3 m from the cells: not a structure standing alone.
+    walled = from_states(local.state.copy(), 0.1, (0.0, 0.0, 0.0))
+    walled.state[_cell(walled, 8.0, 5.3)] = OCCUPIED
+    assert explains(walled, pieces, plain_sight=sight)
+    # The robot's run 2 m away (y = 3), a wall 1.2 m from the cells across its line of sight.
+    local, pieces = _fold_pieces(run_y=3.0, other_run_x=(17.0, 20.0))
+    assert not explains(local, pieces, plain_sight=sight)
+    blocked = from_states(local.state.copy(), 0.1, (0.0, 0.0, 0.0))
+    row, col = _cell(blocked, 7.0, 3.8)
+    blocked.state[row, col : col + 20] = OCCUPIED  # y = 3.8, x 7..9
+    assert explains(blocked, pieces, plain_sight=sight)
+    blocked.state[row, col : col + 20] = UNKNOWN  # never seen there: no sight across them
+    assert explains(blocked, pieces, plain_sight=sight)
+    # The robot's run 3 m away (y = 2): not beside it.
+    assert explains(*_fold_pieces(run_y=2.0, other_run_x=(17.0, 20.0)), plain_sight=sight)
+
+
 def test_the_piece_next_on_the_route_explains_what_it_passed_nearer_than_the_piece_s_own() -> None:
     """The cells at (7.5..8.5, 5) as above; the other piece is the next one on the route, its
     run from (10, 5) on, 2 m from their centre. The piece's own run along y = 0.5, 4.5 m from
