@@ -624,7 +624,8 @@ def _in_plain_sight(local: OccupancyMap, run: FloatArray, slam: FloatArray, clea
     walls = local.state[box] == OCCUPIED
     if not walls.any():
         return True
-    far = cv2.distanceTransform((~walls).view(np.uint8), cv2.DIST_L2, 5) * local.resolution
+    far = cv2.distanceTransform((~walls).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    far *= local.resolution
     return bool(np.all(far[rows - box[0].start, cols - box[1].start] > clear_m))
 
 
