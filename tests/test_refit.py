@@ -761,17 +761,31 @@ def test_the_other_pass_counts_as_far_as_the_sensor_saw(kind: str) -> None:
     assert _refit_in_pieces(kind, (19.0, 30.0), own_run_x=own) == []
 
 
-@pytest.mark.parametrize(("kind", "stays"), [("added", 1), ("removed", 0)])
-def test_an_obstacle_the_robot_saw_from_near_is_not_a_far_pass_fold(kind: str, stays: int) -> None:
+def test_an_obstacle_the_robot_saw_from_near_is_not_a_far_pass_fold() -> None:
     """The other pass's run 17 m from the difference, a lidar that saw 25 m: past half its
     reach. The robot's own run came to 2 m from it: an added one there is what the robot saw
-    from near (a pass more than four times as far drew nothing over it) and stays; a removed
-    one's free cells may be drawn by rays from afar, and that pass explains it."""
+    from near (a pass more than four times as far drew nothing over it) and stays."""
     own = (0.0, 6.0)  # the run's end 2 m from it (distances are to the run's points)
-    assert len(_refit_in_pieces(kind, (25.0, 40.0), seen_north_m=20.0, own_run_x=own)) == stays
+    assert len(_refit_in_pieces("added", (25.0, 40.0), seen_north_m=20.0, own_run_x=own)) == 1
     # That pass 11 m off (x from 19 m), more than four times 2 m but within half the 24.9 m
     # reach: it saw the place as well.
-    assert _refit_in_pieces(kind, (19.0, 30.0), seen_north_m=20.0, own_run_x=own) == []
+    assert _refit_in_pieces("added", (19.0, 30.0), seen_north_m=20.0, own_run_x=own) == []
+
+
+def test_a_removal_seen_from_beside_it_across_open_floor_is_not_a_far_pass_fold() -> None:
+    """As above, removed: the block stood alone (no local wall within 0.5 m of it; where the
+    other pass would have drawn it, 0.8 m south, it did) and the robot's own run came to 2 m of
+    it across cells seen free: no pass more than four times as far explains it, however near
+    within the reach (piecewise.PlainSight, session 56). The robot's run 3 m from it: its free
+    cells may be drawn by rays from afar, and the far pass explains it, as before."""
+    own = (0.0, 6.0)
+    assert len(_refit_in_pieces("removed", (25.0, 40.0), seen_north_m=20.0, own_run_x=own)) == 1
+    assert len(_refit_in_pieces("removed", (19.0, 30.0), seen_north_m=20.0, own_run_x=own)) == 1
+    # A pass 8 m off (x from 16 m), four times the robot's run: it explains it.
+    assert _refit_in_pieces("removed", (16.0, 30.0), seen_north_m=20.0, own_run_x=own) == []
+    farther = (0.0, 5.0)  # the run's end 3 m from it
+    assert _refit_in_pieces("removed", (25.0, 40.0), seen_north_m=20.0, own_run_x=farther) == []
+    assert len(_refit_in_pieces("added", (25.0, 40.0), seen_north_m=20.0, own_run_x=farther)) == 1
 
 
 def test_a_pass_lays_a_line_on_a_wall_looser_than_an_obstacle_with_a_depth() -> None:
