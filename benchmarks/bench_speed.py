@@ -93,7 +93,8 @@ TARGET_DRAIN = 0.8
 TARGET_DRIFTING_S = 1.5
 
 # A pathological difference (tens of thousands of dashes along walls): a stage's cost per dash
-# at four times the dashes, against the cost at one time (linear: 1).
+# at sixteen times the dashes (1,250 -> 20,000), against the cost at one time (linear: 1;
+# session 55's code gave x1.9 for the wall filter and x2.9 for the clustering).
 TARGET_PER_DASH_GROWTH = 1.5
 
 # The data's recipe; a change here (or in the synth package) makes --out regenerate the data.
@@ -785,7 +786,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "== 1c. the diff's wall filter and the clustering on dashes along every wall (best of 3)"
         )
         per_dash: dict[str, list[float]] = {"wall filter": [], "clustering": []}
-        for size in (2000, 4000):
+        for size in (1000, 4000):
             n, walls_s, cluster_s = time_dashes(size)
             per_dash["wall filter"].append(walls_s / n)
             per_dash["clustering"].append(cluster_s / n)
@@ -794,13 +795,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"({walls_s / n * 1e6:.0f} us each), clustering {cluster_s:.2f} s "
                 f"({cluster_s / n * 1e6:.0f} us each)"
             )
-        for name, (at_1x, at_4x) in per_dash.items():
+        for name, (at_1x, at_16x) in per_dash.items():
             checks.append(
                 Check(
-                    f"{name}, cost per dash at 4x the dashes",
-                    f"x{at_4x / at_1x:.2f}",
+                    f"{name}, cost per dash at 16x the dashes",
+                    f"x{at_16x / at_1x:.2f}",
                     f"<= x{TARGET_PER_DASH_GROWTH}",
-                    at_4x / at_1x <= TARGET_PER_DASH_GROWTH,
+                    at_16x / at_1x <= TARGET_PER_DASH_GROWTH,
                 )
             )
 
