@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapserver.diff import distance_to
-from mapserver.grid import Grid, nonzero_cells
+from mapserver.grid import Grid, by_label, nonzero_cells
 
 IntArray = NDArray[np.intp]
 Engine = Literal["grid", "scikit-learn"]
@@ -92,12 +92,8 @@ def cluster_mask(
     # grid a cell or two of evidence would otherwise keep any cluster).
     evidence_floor_m2 = max(min_evidence_m2, min_area_m2)
     out = []
-    # Each cluster's pixels, by label sorted once (a mask over every pixel per cluster was
-    # quadratic: tens of thousands of clusters on a badly drifted map of a large building).
-    order = np.argsort(labels, kind="stable")
-    starts = np.flatnonzero(np.r_[True, labels[order][1:] != labels[order][:-1]])
-    for members in np.split(order, starts[1:]):
-        if labels[members[0]] < 0:
+    for label, members in by_label(labels):
+        if label < 0:
             continue
         pts = xy[members]
         area = len(pts) * cell_m2

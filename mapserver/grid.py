@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -231,6 +232,19 @@ def nonzero_cells(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np
     found = cv2.findNonZero(mask[y : y + h, x : x + w].view(np.uint8))
     cells = found.reshape(-1, 2).astype(np.intp)
     return cells[:, 1] + y, cells[:, 0] + x
+
+
+def by_label(labels: NDArray[np.integer[Any]]) -> Iterator[tuple[int, NDArray[np.intp]]]:
+    """Each label of ``labels`` (N,), ascending, with the indices of its entries in their own
+    order: sorted once, never a mask over all the entries per label (quadratic: tens of
+    thousands of components or clusters on a badly drifted map of a large building)."""
+    if not len(labels):
+        return
+    order = np.argsort(labels, kind="stable")
+    ordered = labels[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    for members in np.split(order, starts[1:]):
+        yield int(labels[members[0]]), members
 
 
 def any_along(

@@ -607,9 +607,7 @@ def _in_plain_sight(local: OccupancyMap, run: FloatArray, slam: FloatArray, clea
     pose = run[int(np.argmin(np.hypot(*(run - slam.mean(axis=0)).T)))]
     target = slam[int(np.argmin(np.hypot(*(slam - pose).T)))]
     grid = Grid.of_map(local)
-    steps = max(2, math.ceil(float(np.hypot(*(target - pose))) / (local.resolution / 2)) + 1)
-    t = np.linspace(0.0, 1.0, steps)[:, None]
-    line = pose[None, :] * (1 - t) + target[None, :] * t
+    line = densify(np.stack([pose, target]), local.resolution / 2)
     if not np.all(grid.sample(local.state, line, UNKNOWN) == FREE):
         return False
     px = np.rint(grid.to_pixel(slam)).astype(np.intp)

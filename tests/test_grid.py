@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from mapserver.grid import Grid, RouteDistance, any_along, any_in_blocks, route_distance
+from mapserver.grid import (
+    Grid,
+    RouteDistance,
+    any_along,
+    any_in_blocks,
+    by_label,
+    route_distance,
+)
 
 
 def test_sample_reads_the_nearest_pixel_and_fills_off_the_grid() -> None:
@@ -87,3 +94,10 @@ def test_any_along_looks_the_given_steps_each_way_a_cell_points() -> None:
     dr, dc = np.array([0, 3]), np.array([3, -3])
     norm = np.hypot(dr, dc)
     assert any_along(mask, *both, dr, dc, 4, norm).tolist() == [True, True]
+
+
+def test_by_label_gives_each_label_ascending_with_its_indices_in_order() -> None:
+    labels = np.array([3, -1, 0, 3, 0, 7, -1, 3])
+    found = [(k, idx.tolist()) for k, idx in by_label(labels)]
+    assert found == [(-1, [1, 6]), (0, [2, 4]), (3, [0, 3, 7]), (7, [5])]
+    assert list(by_label(np.zeros(0, np.int32))) == []
