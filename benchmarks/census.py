@@ -16,7 +16,7 @@ gets the stage that lost it:
 * ``clusters``: in the mask, but every cluster there too small or without removal evidence;
 * ``judged``: a kept cluster, explained away by one of the re-fit's checks, in the order
   ``explain.unexplained`` asks them (``floor``, ``faces``, ``faint fold``, ``band``, ``refit``,
-  ``pass``, ``left out``, ``ghost``, ``in front``, ``through``, ``thin line``);
+  ``pass``, ``left out``, ``ghost``, ``elsewhere``, ``in front``, ``through``, ``thin line``);
 * ``reported``: a cluster there survived, yet no difference matches the change (too large a
   box, the wrong kind...).
 
@@ -123,6 +123,7 @@ _CHECKS: dict[str, tuple[ModuleType, str, Callable[[Any, dict[str, Any]], bool]]
     "pass": (explain, "_seen_on_another_pass", lambda value, _: bool(value)),
     "left out": (piecewise, "left_out_pass_near", lambda value, _: bool(value)),
     "ghost": (refit_stage, "ghost_of_wall", lambda value, _: bool(value)),
+    "elsewhere": (refit_stage, "wall_drawn_elsewhere", lambda value, _: bool(value)),
     "in front": (refit_stage, "face_drawn_in_front", lambda value, _: bool(value)),
     "through": (refit_stage, "line_through_wall", lambda value, _: bool(value)),
     "thin line": (refit_stage, "thin_line_by_wall", lambda value, _: bool(value)),

@@ -189,14 +189,106 @@ def ghost_of_wall(
     unseen; a copy leaves it seen, as the robot looked through it at the wall: with
     ``local_state`` given, a shorter ``min_length_m`` holds (the pipeline's 0.6 m, session 38).
     """
+    return _moved_onto_wall(
+        cells,
+        added,
+        global_walls,
+        local_walls,
+        resolution=resolution,
+        tolerance_m=tolerance_m,
+        reach_m=reach_m,
+        shift_m=shift_m,
+        turn_deg=turn_deg,
+        min_length_m=min_length_m,
+        max_width_m=max_width_m,
+        local_state=local_state,
+        min_between_free=min_between_free,
+        clear_m=None,
+    )
+
+
+def wall_drawn_elsewhere(
+    cells: NDArray[np.intp],
+    added: BoolArray,
+    global_walls: BoolArray,
+    local_state: NDArray[np.uint8],
+    *,
+    resolution: float,
+    tolerance_m: float,
+    clear_m: float,
+    shift_m: float = 1.5,
+    min_length_m: float = 0.4,
+    min_between_free: float = 0.7,
+) -> bool:
+    """Whether the added difference of ``cells`` ((N, 2) row, col) is part of a wall a pass
+    drew away from where it stands: a line of added cells (``added``, (H, W) bool, those within
+    1.5 m of it and 0.2 m of the line it runs along) at least ``min_length_m`` long that one
+    move across itself of at most ``shift_m`` (and a turn of at most 3 degrees) lays, 80 % of
+    it and 80 % of the difference, within ``tolerance_m`` of a global wall that the local map
+    (``local_state``, the cell states on the same grid) sees free there, no local wall drawn in
+    place (one not among ``added``) within ``clear_m`` of it (a wall drawn a cell or two off its
+    place by the drift left in the map is no wall gone: the pipeline's removed tolerance), with
+    the floor between them seen free (``min_between_free`` of it).
+
+    :func:`ghost_of_wall`'s move, onto the other twin: there the wall is drawn twice, one copy
+    in place; here the only copy stands off, and the robot saw the floor where the wall stands
+    as open. A new wall in front of an old one hides the old one; a wall seen gone beside a new
+    line of the same run is one wall seen displaced, which only drift left in the map draws
+    (a wall moved between sessions looks the same, and after a drifting session is not told
+    apart from it)."""
+    return _moved_onto_wall(
+        cells,
+        added,
+        global_walls,
+        local_state == OCCUPIED,
+        resolution=resolution,
+        tolerance_m=tolerance_m,
+        reach_m=1.5,
+        shift_m=shift_m,
+        turn_deg=3.0,
+        min_length_m=min_length_m,
+        max_width_m=0.2,
+        local_state=local_state,
+        min_between_free=min_between_free,
+        clear_m=clear_m,
+    )
+
+
+def _moved_onto_wall(
+    cells: NDArray[np.intp],
+    added: BoolArray,
+    global_walls: BoolArray,
+    local_walls: BoolArray,
+    *,
+    resolution: float,
+    tolerance_m: float,
+    reach_m: float,
+    shift_m: float,
+    turn_deg: float,
+    min_length_m: float,
+    max_width_m: float,
+    local_state: NDArray[np.uint8] | None,
+    min_between_free: float,
+    clear_m: float | None,
+) -> bool:
+    """:func:`ghost_of_wall` and :func:`wall_drawn_elsewhere`: the line moved across itself
+    onto the global walls the local map shows in place (``clear_m`` None) or sees free with no
+    local wall drawn in place within ``clear_m``."""
     rows, cols = cells[:, 0], cells[:, 1]
     box = _window(rows, cols, reach_m + shift_m, resolution, global_walls.shape)
     r0, c0 = box[0].start, box[1].start
     # Within the tolerance of a mask: a dilation (diff.within), not a distance transform.
     tol_px = tolerance_m / resolution
-    # Global walls the local map shows in place too: the first copy of the wall.
     g = global_walls[box]
-    target = g & within(local_walls[box], tol_px)
+    if clear_m is not None:
+        # Global walls the local map sees free, no local wall drawn in place (one not added)
+        # within ``clear_m``: the wall drawn elsewhere, not a wall drawn a cell or two off.
+        assert local_state is not None
+        in_place = local_walls[box] & ~added[box]
+        target = g & (local_state[box] == FREE) & ~within(in_place, clear_m / resolution)
+    else:
+        # Global walls the local map shows in place too: the first copy of the wall.
+        target = g & within(local_walls[box], tol_px)
     if not target.any():
         return False
     disc = _disk(math.ceil(reach_m / resolution))
