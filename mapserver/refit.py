@@ -21,6 +21,9 @@ of free cells along a structure's face, walled inside by the local face (the fac
 displaced into the structure). :func:`line_through_wall` catches a fold that no small move
 undoes: a wall drawn by a pass whose heading had drifted 10-20 degrees, laid as a straight line
 across the building and through a wall the local map shows standing, where no new wall can go.
+:func:`ghost_of_wall` finds a wall drawn twice, a line beside its copy in place;
+:func:`wall_drawn_elsewhere` its other twin, a wall's only copy drawn off its place beside
+where the robot saw it gone.
 """
 
 from __future__ import annotations
