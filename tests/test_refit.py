@@ -1094,6 +1094,11 @@ def test_a_short_line_or_a_box_beside_a_wall_seen_gone_is_no_wall_drawn_elsewher
         s = state.copy()
         s[added] = OCCUPIED
         assert not wall_drawn_elsewhere(cells(added), added, glob, s, **kw)
+    # The same line 0.5 m long is a stretch of the wall.
+    line = np.zeros(glob.shape, bool)
+    line[52, 60:70] = True
+    state[line] = OCCUPIED
+    assert wall_drawn_elsewhere(cells(line), line, glob, state, **kw)
 
 
 @pytest.mark.parametrize("drawn_off_px", [2, 4])
