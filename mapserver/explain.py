@@ -390,6 +390,7 @@ def unexplained(
             diff.cells,
             added,
             global_walls,
+            local_walls,
             local_state,
             resolution=grid.resolution,
             tolerance_m=d.tolerance_m,

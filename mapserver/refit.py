@@ -214,6 +214,7 @@ def wall_drawn_elsewhere(
     cells: NDArray[np.intp],
     added: BoolArray,
     global_walls: BoolArray,
+    local_walls: BoolArray,
     local_state: NDArray[np.uint8],
     *,
     resolution: float,
@@ -228,8 +229,9 @@ def wall_drawn_elsewhere(
     1.5 m of it and 0.2 m of the line it runs along) at least ``min_length_m`` long that one
     move across itself of at most ``shift_m`` (and a turn of at most 3 degrees) lays, 80 % of
     it and 80 % of the difference, within ``tolerance_m`` of a global wall that the local map
-    (``local_state``, the cell states on the same grid) sees free there, no local wall drawn in
-    place (one not among ``added``) within ``clear_m`` of it (a wall drawn a cell or two off its
+    (``local_state``, the cell states on the same grid) sees free there, no local wall
+    (``local_walls``, its occupied cells, as the caller has them) drawn in place (one not among
+    ``added``) within ``clear_m`` of it (a wall drawn a cell or two off its
     place by the drift left in the map is no wall gone: the pipeline's removed tolerance), with
     the floor between them seen free (``min_between_free`` of it).
 
@@ -243,7 +245,7 @@ def wall_drawn_elsewhere(
         cells,
         added,
         global_walls,
-        local_state == OCCUPIED,
+        local_walls,
         resolution=resolution,
         tolerance_m=tolerance_m,
         reach_m=1.5,

@@ -1049,8 +1049,8 @@ def test_a_wall_seen_gone_beside_its_line_drawn_off_it_is_that_wall_drawn_elsewh
     glob, state, line = _wall_drawn_off(off_px, FREE, FREE)
     piece = line & (np.arange(160) < 60)
     kw = {"resolution": RES, "tolerance_m": 0.15, "clear_m": 0.25}
-    assert wall_drawn_elsewhere(cells(line), line, glob, state, **kw)
-    assert wall_drawn_elsewhere(cells(piece), line, glob, state, **kw)
+    assert wall_drawn_elsewhere(cells(line), line, glob, state == OCCUPIED, state, **kw)
+    assert wall_drawn_elsewhere(cells(piece), line, glob, state == OCCUPIED, state, **kw)
     # The ghost (the wall drawn in place too) is the other twin: not this one.
     assert not ghost_of_wall(
         cells(line),
@@ -1077,7 +1077,7 @@ def test_a_line_beside_a_wall_is_drawn_elsewhere_only_with_the_wall_and_the_floo
 ) -> None:
     glob, state, line = _wall_drawn_off(off_px, wall_seen, between)
     kw = {"resolution": RES, "tolerance_m": 0.15, "clear_m": 0.25}
-    assert not wall_drawn_elsewhere(cells(line), line, glob, state, **kw), why
+    assert not wall_drawn_elsewhere(cells(line), line, glob, state == OCCUPIED, state, **kw), why
 
 
 def test_a_short_line_or_a_box_beside_a_wall_seen_gone_is_no_wall_drawn_elsewhere() -> None:
@@ -1093,12 +1093,12 @@ def test_a_short_line_or_a_box_beside_a_wall_seen_gone_is_no_wall_drawn_elsewher
     for added in (short, box):
         s = state.copy()
         s[added] = OCCUPIED
-        assert not wall_drawn_elsewhere(cells(added), added, glob, s, **kw)
+        assert not wall_drawn_elsewhere(cells(added), added, glob, s == OCCUPIED, s, **kw)
     # The same line 0.5 m long is a stretch of the wall.
     line = np.zeros(glob.shape, bool)
     line[52, 60:70] = True
     state[line] = OCCUPIED
-    assert wall_drawn_elsewhere(cells(line), line, glob, state, **kw)
+    assert wall_drawn_elsewhere(cells(line), line, glob, state == OCCUPIED, state, **kw)
 
 
 @pytest.mark.parametrize("drawn_off_px", [2, 4])
@@ -1112,11 +1112,11 @@ def test_a_line_beside_a_wall_drawn_a_few_cells_off_its_place_is_no_wall_drawn_e
     glob, state, line = _wall_drawn_off(12, FREE, FREE)
     state[40 - drawn_off_px, 5:155] = OCCUPIED
     kw = {"resolution": RES, "tolerance_m": 0.15, "clear_m": 0.25}
-    assert not wall_drawn_elsewhere(cells(line), line, glob, state, **kw)
+    assert not wall_drawn_elsewhere(cells(line), line, glob, state == OCCUPIED, state, **kw)
     # Drawn farther off than that, 0.35 m, it is no longer the wall in place.
     state[40 - drawn_off_px, 5:155] = FREE
     state[33, 5:155] = OCCUPIED
-    assert wall_drawn_elsewhere(cells(line), line, glob, state, **kw)
+    assert wall_drawn_elsewhere(cells(line), line, glob, state == OCCUPIED, state, **kw)
 
 
 @pytest.mark.parametrize("between", [FREE, UNKNOWN])
