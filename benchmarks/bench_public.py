@@ -41,6 +41,7 @@ from mapserver.maps import load_map
 from mapserver.outbox import RESULT, write_result
 from mapserver.pipeline import _DRIFTED_M, process_bundle
 from mapserver.scoring import (
+    RIGID_BEND_M,
     BundleScore,
     Summary,
     observed_centroid_xy,
@@ -62,6 +63,9 @@ class Case:
     truth_path: Path
     kind: str = ""
     """The scenario's case (``scenario.yaml``'s ``case``, else the scenario folder's name)."""
+    bend_m: float | None = None
+    """How far the true local map bends from one rigid transform (metres; see
+    :func:`_scenario_bend_m`), None when the scenario does not say."""
 
 
 @dataclass(frozen=True)
@@ -107,20 +111,52 @@ def find_cases(set_dir: Path) -> list[Case]:
         truth = bundle_dir.parent.parent / "truth" / f"{bundle_dir.name}.yaml"
         if not truth.is_file():
             raise UsageError(f"{truth}: no truth file for bundle {bundle_dir}")
-        cases.append(Case(bundle_dir.name, bundle_dir, truth, _scenario_kind(bundle_dir)))
+        doc = _scenario_doc(bundle_dir)
+        kind = _scenario_kind(doc, bundle_dir)
+        cases.append(
+            Case(bundle_dir.name, bundle_dir, truth, kind, _scenario_bend_m(doc, bundle_dir.name))
+        )
     if not cases:
         raise UsageError(f"{set_dir}: no bundles (expected <scenario>/bundles/<bundle_id>/)")
     return cases
 
 
-def _scenario_kind(bundle_dir: Path) -> str:
-    scenario_dir = bundle_dir.parent.parent
+def _scenario_doc(bundle_dir: Path) -> dict[str, Any]:
+    """The bundle's scenario's ``scenario.yaml`` (empty when it has none or it does not read)."""
     try:
-        doc = yaml.safe_load((scenario_dir / "scenario.yaml").read_text())
+        doc = yaml.safe_load((bundle_dir.parent.parent / "scenario.yaml").read_text())
     except (OSError, yaml.YAMLError):
         doc = None
-    case = doc.get("case") if isinstance(doc, dict) else None
-    return str(case) if case else scenario_dir.name
+    return doc if isinstance(doc, dict) else {}
+
+
+def _scenario_kind(doc: dict[str, Any], bundle_dir: Path) -> str:
+    case = doc.get("case")
+    return str(case) if case else bundle_dir.parent.parent.name
+
+
+def _scenario_bend_m(doc: dict[str, Any], bundle_id: str) -> float | None:
+    """How far (metres) the true local map of ``bundle_id`` bends from one rigid transform: the
+    simulator's record of its drift (``bundles[].drift.fit_max_residual_m``: the largest
+    distance of a route pose from where the best rigid fit of the SLAM poses onto the true
+    ones puts it). 0 for a scenario simulated without drift (no record, and its ``params`` do
+    not ask for drift: the public set); None when the scenario does not say."""
+    for b in doc.get("bundles") or ():
+        if isinstance(b, dict) and b.get("id") == bundle_id:
+            drift = b.get("drift")
+            if isinstance(drift, dict) and isinstance(
+                drift.get("fit_max_residual_m"), (int, float)
+            ):
+                return float(drift["fit_max_residual_m"])
+    params = doc.get("params")
+    if not isinstance(params, dict) or not doc.get("bundles"):
+        return None
+    asks_drift = params.get("drift") or any(
+        isinstance(v, (int, float)) and v != 0
+        for k, v in params.items()
+        if str(k).startswith("drift_")
+    )
+    return None if asks_drift else 0.0
 
 
 def _trust(doc: Any) -> str:
@@ -311,6 +347,7 @@ def report(rows: Sequence[Row], *, set_dir: Path, outbox: Path, mode: str) -> di
             {
                 "bundle": row.case.bundle_id,
                 "kind": row.case.kind,
+                "bend_m": row.case.bend_m,
                 "trust": row.trust,
                 "status": row.status,
                 "reason": row.reason,
@@ -372,6 +409,7 @@ def report(rows: Sequence[Row], *, set_dir: Path, outbox: Path, mode: str) -> di
         },
         "kinds": kind_totals(rows),
         "alignments": alignment_totals(rows),
+        "bends": bend_totals(rows),
     }
 
 
@@ -389,6 +427,21 @@ def alignment_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
     ones left out (their result does not say), in the order of ``_ALIGNED_ORDER``."""
     totals = _group_totals([r for r in rows if r.status == "ok"], lambda row: row.aligned)
     return {key: totals[key] for key in _ALIGNED_ORDER if key in totals}
+
+
+def _bend_class(row: Row) -> str:
+    """``rigid`` (the true map bends under ``RIGID_BEND_M``), ``bent`` (more), ``-`` (the
+    scenario does not say)."""
+    if row.case.bend_m is None:
+        return "-"
+    return "rigid" if row.case.bend_m < RIGID_BEND_M else "bent"
+
+
+def bend_totals(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
+    """The totals of the bundles whose true map is rigid, bent (:func:`_bend_class`) or does
+    not say, in that order, failed ones included (a failure is scored as one)."""
+    totals = _group_totals(rows, _bend_class)
+    return {key: totals[key] for key in ("rigid", "bent", "-") if key in totals}
 
 
 def _group_totals(rows: Sequence[Row], key: Callable[[Row], str]) -> dict[str, dict[str, Any]]:
@@ -475,6 +528,17 @@ def format_report(doc: dict[str, Any]) -> str:
             lines.append(
                 _group_line(name, k) + f"{k['matched']}/{k['observed']} found, "
                 f"{k['observed'] - k['matched']} missed, {k['false_positive']} FP"
+            )
+    bends = doc.get("bends", {})
+    if set(bends) - {"-"}:  # some scenario says how far its true map bends
+        lines.append(
+            f"per true bend (rigid: the true local map within {RIGID_BEND_M} m of one rigid "
+            "transform, a session without drift; bent: more; -: the scenario does not say):"
+        )
+        for name, k in bends.items():
+            lines.append(
+                _group_line(name, k) + f"{k['matched']}/{k['observed']} found, "
+                f"{k['false_positive']} FP"
             )
     return "\n".join(lines)
 

@@ -47,7 +47,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mapserver.scoring import f1_from, precision_from_counts, recall_from_counts
+import numpy as np
+
+from mapserver.scoring import RIGID_BEND_M, f1_from, precision_from_counts, recall_from_counts
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "bench"
@@ -254,7 +256,32 @@ def compare(args: argparse.Namespace) -> int:
             f"  found {tb['matched']:.0f} -> {ta['matched']:.0f} / {ta['observed']:.0f}"
             f"  FP {tb['false_positive']:.0f} -> {ta['false_positive']:.0f}"
         )
+    # Issue 12's alignment target for sessions without drift, over the bundles of every set
+    # whose true map is rigid (bench_public's bend record; a run before it has none).
+    pb, pa = (_rigid_p90([docs[n] for n in common]) for docs in (before, after))
+    print(
+        f"alignment error p90 where the true map is rigid: {_fmt_m(pb[0])} -> {_fmt_m(pa[0])}"
+        f" ({pa[1]} bundles)"
+    )
     return 0
+
+
+def _rigid_p90(docs: list[dict[str, Any]]) -> tuple[float | None, int]:
+    """The p90 (metres) of the alignment errors of the bundles whose true local map bends
+    under ``mapserver.scoring.RIGID_BEND_M`` (None when none says), and how many there are."""
+    errors = [
+        b["alignment_error_m"]
+        for d in docs
+        for b in d.get("bundles", ())
+        if b.get("bend_m") is not None
+        and b["bend_m"] < RIGID_BEND_M
+        and b.get("alignment_error_m") is not None
+    ]
+    return (float(np.percentile(errors, 90)) if errors else None), len(errors)
+
+
+def _fmt_m(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4f} m"
 
 
 def table(args: argparse.Namespace) -> int:

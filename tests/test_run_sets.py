@@ -183,3 +183,29 @@ def test_table_writes_each_sets_row_and_names_what_it_cannot(
     assert lines[6] == text.splitlines()[6]  # no set has these arguments
     out = capsys.readouterr().out
     assert "drift123: no row" in out and "2 rows written" in out
+
+
+def test_compare_pools_the_alignment_error_where_the_true_map_is_rigid(
+    rs: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 12's alignment target for sessions without drift: the p90 over the bundles of
+    every set whose true map bends under 0.05 m; bent ones, and ones whose scenario does not
+    say, are left out; a run from before the record says so."""
+    total = {"matched": 1, "observed": 1, "correct": 1, "false_positive": 0, "f1": 1.0}
+    rigid = [{"bend_m": 0.01, "alignment_error_m": e / 100} for e in range(1, 11)]
+    other = [
+        {"bend_m": 0.2, "alignment_error_m": 0.5},
+        {"bend_m": None, "alignment_error_m": 0.5},
+        {"bend_m": 0.0, "alignment_error_m": None},  # a failed bundle: no transform
+    ]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    for name, bundles in (("one", rigid[:5] + other), ("two", rigid[5:])):
+        (tmp_path / "a" / f"{name}.json").write_text(json.dumps({"total": total}))
+        doc = {"total": total, "bundles": bundles}
+        (tmp_path / "b" / f"{name}.json").write_text(json.dumps(doc))
+    args = type("Args", (), {"before": str(tmp_path / "a"), "after": str(tmp_path / "b")})
+    assert rs.compare(args) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    # numpy's p90 of 0.01 .. 0.10 (linear): 0.091.
+    assert last == "alignment error p90 where the true map is rigid: - -> 0.0910 m (10 bundles)"

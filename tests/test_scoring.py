@@ -522,6 +522,58 @@ def test_bench_totals_bundles_by_how_they_were_aligned(bench, tiny_set, tmp_path
     assert list(doc["alignments"]) == ["pieces"]
 
 
+@pytest.mark.parametrize(
+    ("doc", "expected"),
+    [
+        # The simulator's record of the bundle's drift: its largest residual from a rigid fit.
+        ({"bundles": [{"id": "b1", "drift": {"fit_max_residual_m": 0.07}}]}, 0.07),
+        # Another bundle's record says nothing of this one's; drift asked for: it bends.
+        (
+            {"params": {"drift": True}, "bundles": [{"id": "b2", "drift": {}}, {"id": "b1"}]},
+            None,
+        ),
+        ({"params": {"drift_yaw_deg_per_m": 0.02}, "bundles": [{"id": "b1"}]}, None),
+        # Simulated without drift (the public set's scenarios): rigid.
+        ({"params": {"drift_yaw_deg_per_m": 0.0, "fov": 360}, "bundles": [{"id": "b1"}]}, 0.0),
+        # No scenario file, or one of another layout: it does not say.
+        ({}, None),
+        ({"params": {"fov": 360}}, None),
+    ],
+)
+def test_bench_reads_how_far_the_true_map_bends(bench, doc, expected):
+    assert bench._scenario_bend_m(doc, "b1") == expected
+
+
+def test_bench_totals_bundles_by_how_far_their_true_map_bends(bench, tiny_set, tmp_path, capsys):
+    """b1's true map bends 0.2 m (its change found), b2's 0.01 m (its change missed): each
+    counted under its own, rigid first, with the alignment error of each."""
+    doc = {
+        "case": "gen",
+        "params": {"drift_yaw_deg_per_m": 0.02},
+        "bundles": [
+            {"id": "b1", "drift": {"fit_max_residual_m": 0.2}},
+            {"id": "b2", "drift": {"fit_max_residual_m": 0.01}},
+        ],
+    }
+    (tiny_set / "s1" / "scenario.yaml").write_text(yaml.safe_dump(doc))
+    outbox = tmp_path / "outbox"
+    for bundle_id, result in (("b1", B1_RESULT), ("b2", result_doc(alignment=(0.0, 0.0, 0.0)))):
+        (outbox / bundle_id).mkdir(parents=True)
+        (outbox / bundle_id / "result.yaml").write_text(yaml.safe_dump(result))
+    assert bench.main([str(tiny_set), "--score-only", str(outbox), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [b["bend_m"] for b in out["bundles"]] == [0.2, 0.01]
+    bends = out["bends"]
+    assert list(bends) == ["rigid", "bent"]
+    assert (bends["bent"]["matched"], bends["rigid"]["matched"]) == (1, 0)
+    assert bends["rigid"]["alignment_error_p90_m"] == pytest.approx(0.0)
+    assert bends["bent"]["alignment_error_p90_m"] == pytest.approx(0.01 * math.hypot(2, 1), 1e-3)
+    assert bench.main([str(tiny_set), "--score-only", str(outbox)]) == 0
+    text = capsys.readouterr().out
+    block = text[text.index("per true bend") :].splitlines()[1:]
+    assert [line.split()[:2] for line in block] == [["rigid", "1"], ["bent", "1"]]
+
+
 def test_bench_run_survives_failing_bundles(bench, tiny_set, tmp_path, capsys, monkeypatch):
     def fake_process(bundle_dir, config, *, bundle_id=None):
         if bundle_id == "b2":
