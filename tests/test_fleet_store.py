@@ -17,8 +17,9 @@ import yaml
 from mapserver.config import UpdateConfig
 from mapserver.errors import MapFileError, StoreError
 from mapserver.fleet import evidence, publish
+from mapserver.fleet.observe import Found
 from mapserver.fleet.store import FleetStore
-from mapserver.maps import FREE, OCCUPIED, load_map
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, load_map, save_map
 from tests.fleet_support import (
     COLUMN,
     PERSON,
@@ -1026,3 +1027,50 @@ def test_stamps_with_a_part_of_a_second_sort_as_text_in_time_order() -> None:
     assert normal == ["2026-11-21T08:00:00Z", "2026-11-21T08:00:00Z", "2026-11-21T08:00:00Z"]
     later = [utc_stamp("2026-11-21T07:59:59.999Z"), *normal, utc_stamp("2026-11-21T08:00:01.2Z")]
     assert sorted(later) == later
+
+
+# A block drawn as its outline (2 cells thick) round an inside no lidar saw (unknown), as maps
+# draw shelves and pillars: rows 40..59, cols 300..329 (15-16.5 m, 9-10 m).
+BLOCK = (slice(40, 60), slice(300, 330))
+BLOCK_INSIDE = (slice(42, 58), slice(302, 328))
+
+
+def test_a_block_drawn_as_an_outline_gone_is_published_as_floor_inside_too(tmp_path: Path) -> None:
+    """A removed block whose map drew only its outline: the version publishing its removal
+    frees what the sessions saw free inside it too, not only the outline (a fresh-eyes
+    review of session 58 found the demo depot's removed block left an island of unknown
+    where three sessions saw floor). Where only one session saw inside (under
+    paint_min_sessions, 2), it stays unknown, as the outline there stays drawn."""
+    v1 = building()
+    v1[BLOCK] = OCCUPIED
+    v1[BLOCK_INSIDE] = UNKNOWN
+    (tmp_path / "src").mkdir()
+    hall = save_map(tmp_path / "src" / "hall.yaml", v1, 0.05, (0.0, 0.0, 0.0))
+    store = FleetStore(tmp_path / "maps", AUTO)
+    store.add_map("hall", hall)
+    outline = np.zeros(v1.shape, bool)
+    outline[BLOCK] = True
+    outline[BLOCK_INSIDE] = False
+    robot = Robot()
+    # Two sessions saw only the block's left part (cols < 315), the third all of it.
+    left = (slice(0, 240), slice(0, 315))
+    for hours, view in ((0, left), (8, left), (16, (slice(0, 240), slice(0, 400)))):
+        seen = np.zeros(v1.shape, bool)
+        seen[view] = True
+        gone = np.flatnonzero(outline & seen).astype(np.int64)
+        obs = robot.observe(hours, removed=(BLOCK,), view=view)
+        obs = dataclasses.replace(
+            obs, found=(Found("removed", gone),), result_cells=(("removed", gone),)
+        )
+        store.apply(obs)
+    assert store.map_info("hall").current_version == 2
+    v2 = load_map(tmp_path / "maps" / "hall" / "v0002.yaml").state
+    # Seen free by all three sessions: the outline and the inside, floor now.
+    assert (v2[40:60, 300:315] == FREE).all()
+    # Seen by one session only: the outline stays drawn, the inside unknown.
+    assert (v2[42:58, 315:328] == UNKNOWN).all()
+    assert (v2[40:42, 315:330] == OCCUPIED).all()
+    # Nothing outside the block changed.
+    rest = np.ones(v1.shape, bool)
+    rest[BLOCK] = False
+    assert np.array_equal(v1[rest], v2[rest])

@@ -35,7 +35,7 @@ from mapserver.errors import StoreError
 from mapserver.fleet import evidence, publish, tracker
 from mapserver.fleet.changes import ChangeTracker
 from mapserver.fleet.db import connect, connect_readonly, transaction
-from mapserver.fleet.lattice import IntArray, Lattice
+from mapserver.fleet.lattice import IntArray, Lattice, Window
 from mapserver.fleet.model import (
     STATES,
     ChangeInfo,
@@ -48,7 +48,7 @@ from mapserver.fleet.model import (
 )
 from mapserver.fleet.observe import Observation
 from mapserver.fsio import dump_yaml, replace_atomic
-from mapserver.maps import FREE, OCCUPIED, load_map
+from mapserver.maps import FREE, OCCUPIED, UNKNOWN, load_map
 
 log = logging.getLogger(__name__)
 WRITER_LOCK = ".writer.lock"
@@ -746,6 +746,43 @@ class FleetStore:
         )
         return kind, cells
 
+    def _seen_free_inside(
+        self, map_id: int, lattice: Lattice, cid: int, cells: IntArray, state: NDArray[np.uint8]
+    ) -> tuple[IntArray, IntArray]:
+        """(rows, cols) of the cells inside removed change ``cid`` (the convex hull of its
+        painted ``cells``) that ``state`` leaves unknown and that the fleet saw free: in at least
+        as many sessions as a cell of it must have seen changed to be painted
+        (``paint_min_sessions``, or all of its sessions when fewer), and more often free than
+        occupied. A map draws a block or a column as its outline round an inside no lidar saw;
+        gone, its outline painted free would leave that inside an island of unknown in the
+        middle of floor the robots drove round (a planner that keeps out of unknown space
+        would still go round it)."""
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        if len(cells) < 3:
+            return empty
+        import cv2  # as Lattice.outline: the main process needs it only to publish
+
+        rows, cols = lattice.unflat(cells)
+        r0, c0 = int(rows.min()), int(cols.min())
+        window = Window(r0, c0, int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+        hull = cv2.convexHull(np.stack([cols - c0, rows - r0], axis=1).astype(np.int32))
+        inside = np.zeros((window.rows, window.cols), np.uint8)
+        cv2.fillConvexPoly(inside, hull, 1)
+        sessions = self._conn.execute(
+            "SELECT sessions FROM changes WHERE id = ?", (cid,)
+        ).fetchone()[0]
+        need = max(1, min(self.settings.paint_min_sessions, int(sessions)))
+        seen = evidence.read_window(self._conn, map_id, window)
+        box = (slice(r0, r0 + window.rows), slice(c0, c0 + window.cols))
+        free = (
+            inside.view(bool)
+            & (state[box] == UNKNOWN)
+            & (seen.free >= need)
+            & (seen.free > seen.occupied)
+        )
+        fr, fc = np.nonzero(free)
+        return fr + r0, fc + c0
+
     def _current_state(self, map_id: int, name: str) -> NDArray[np.uint8]:
         version = self._current_version(map_id)
         cached = self._states.get(map_id)
@@ -784,6 +821,8 @@ class FleetStore:
             else:
                 was = state[rows, cols] == OCCUPIED
                 state[rows[was], cols[was]] = FREE
+                inside = self._seen_free_inside(map_id, lattice, cid, cells, state)
+                state[inside] = FREE
         if np.array_equal(state, self._current_state(map_id, name)):
             # The current version already shows them (another change painted the same cells):
             # no new version, the changes are in the current one.
