@@ -29,7 +29,14 @@ from typing import Any
 import yaml
 
 from mapserver.bundle import UPLOAD_TO
-from mapserver.config import ENV_VAR, Config, check_paths, dump_config, load_config
+from mapserver.config import (
+    CONFIG_HELP,
+    ENV_VAR,
+    Config,
+    check_paths,
+    dump_config,
+    load_config,
+)
 from mapserver.errors import ConfigError, MapFileError, MapserverError, describe_validation
 from mapserver.fleet.cli import open_store
 from mapserver.fleet.cli import register as register_fleet_commands
@@ -496,6 +503,8 @@ def _prepare_demo_dir(root: Path) -> None:
 
 
 _DEMO_WEB_PID = "web.pid"
+# The demo's web pages: the web command's default port, else any free one.
+_DEMO_PORT = 8350
 
 
 def _stop_demo_web(root: Path) -> None:
@@ -529,7 +538,7 @@ def _free_port(preferred: int) -> int:
 def _start_demo_web(root: Path) -> tuple[str, int] | None:
     """Start ``mapserver web`` on the demo folder, detached (it outlives the demo, so that the
     operator can look); returns its URL and pid, or None when it did not come up."""
-    port = _free_port(8350)
+    port = _free_port(_DEMO_PORT)
     log_path = root / "web.log"
     with log_path.open("wb") as log_file:
         process = subprocess.Popen(
@@ -758,17 +767,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         out.write(f"the web pages did not start; see {root / 'web.log'}\n")
         return 1
     url, pid = web
+    if not url.endswith(f":{_DEMO_PORT}/"):
+        out.write(f"port {_DEMO_PORT} is taken on 127.0.0.1: the web pages use another one\n")
     out.write(
         f"\nopen {url} : the demo's results, its failures and the depot map with its changes "
         f"and versions.\nThe page server keeps running (pid {pid}); stop it with: kill {pid}\n"
     )
     return 0 if ok and code == 0 else 1
-
-
-_CONFIG_HELP = (
-    "the configuration file (default: $MAPSERVER_CONFIG, else the built-in defaults, with every "
-    "folder in the current directory)"
-)
 
 
 def _version() -> str:
@@ -826,7 +831,7 @@ def build_parser() -> argparse.ArgumentParser:
         "0. Under systemd, use deploy/systemd/mapserver.service.",
         "  mapserver run --config /etc/mapserver/mapserver.yaml",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.add_argument(
         "--no-web",
         action="store_true",
@@ -848,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  mapserver web --config /etc/mapserver/mapserver.yaml\n"
         "  curl -s http://127.0.0.1:8350/api/maps",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.add_argument("--listen", default=None, metavar="HOST:PORT", help="instead of web.listen")
     p.set_defaults(func=_cmd_web)
 
@@ -862,7 +867,7 @@ def build_parser() -> argparse.ArgumentParser:
         "the daemon runs, 3 when it does not (for monitoring).",
         "  mapserver status --config /etc/mapserver/mapserver.yaml || echo 'mapserver is down'",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.set_defaults(func=_cmd_status)
 
     p = _command(
@@ -877,7 +882,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  mapserver requeue --config /etc/mapserver/mapserver.yaml run-0042 run-0043\n"
         "  mapserver requeue --config /etc/mapserver/mapserver.yaml --failed-since 2026-11-21",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.add_argument(
         "--failed-since",
         default=None,
@@ -898,7 +903,7 @@ def build_parser() -> argparse.ArgumentParser:
         "succeeded, 1 otherwise (one error line per bundle that did not).",
         "  mapserver process --outbox /tmp/results ~/bundles/run-0042 ~/bundles/run-0043",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.add_argument(
         "--outbox",
         type=Path,
@@ -918,7 +923,7 @@ def build_parser() -> argparse.ArgumentParser:
         "code 1 when the file is wrong.",
         "  mapserver check-config --config /etc/mapserver/mapserver.yaml",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=_CONFIG_HELP)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.set_defaults(func=_cmd_check_config)
 
     p = _command(
@@ -969,7 +974,10 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         "see it work: a real daemon on the shipped sample bundles",
         "Make a demo folder, start the daemon on it, upload the shipped sample bundles the way "
-        "rsync does, print each result and where its files are, and stop the daemon.",
+        "rsync does, print each result and where its files are, and stop the daemon. The web "
+        "pages showing it all keep running (on 127.0.0.1:8350, or a free port when that one is "
+        "taken): the demo prints their URL and how to stop them; the next demo in the same "
+        "folder stops them first.",
         "  mapserver demo --dir /tmp/mapserver-demo",
     )
     p.add_argument(

@@ -19,6 +19,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from mapserver.errors import ConfigError, MapserverError, describe_validation, no_such_path
 
 ENV_VAR = "MAPSERVER_CONFIG"
+# What every command's --config says of it (how load_config finds the file).
+CONFIG_HELP = (
+    "the configuration file (default: $MAPSERVER_CONFIG, else the built-in defaults, with every "
+    "folder in the current directory)"
+)
 
 
 class _Frozen(BaseModel):

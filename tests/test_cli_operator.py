@@ -163,19 +163,43 @@ def test_python_dash_m_mapserver_is_the_command() -> None:
 
 
 @pytest.mark.parametrize(
-    "command", ["run", "status", "process", "check-config", "bundle", "demo", None]
+    "command",
+    [
+        "run",
+        "status",
+        "process",
+        "check-config",
+        "bundle",
+        "demo",
+        "web",
+        "requeue",
+        "maps",
+        "maps add",
+        "maps list",
+        "maps show",
+        "maps rollback",
+        "changes",
+        "changes list",
+        "changes approve",
+        "changes reject",
+        None,
+    ],
 )
 def test_every_help_is_written_for_an_operator_and_ends_with_an_example(
     command: str | None, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    # Session 58's review: `maps list` and `changes list` had none, and their --config no help.
     with pytest.raises(SystemExit):
-        main([command, "--help"] if command else ["--help"])
+        main([*command.split(), "--help"] if command else ["--help"])
     text = capsys.readouterr().out
     assert "example" in text
     example = text.split("example", 1)[1]
     assert f"mapserver {command or ''}".strip() in example
     for developer_words in ("thin layer", "configures logging", "docstring"):
         assert developer_words not in text
+    options = text.split("example", 1)[0]
+    if "--config" in options.split("options:")[-1]:
+        assert "--config FILE" in options and "$MAPSERVER_CONFIG" in options
 
 
 def test_a_pose_may_be_typed_with_a_minus_and_no_equals_sign(tmp_path: Path) -> None:
@@ -357,3 +381,17 @@ def test_process_says_when_it_cannot_write_a_result_and_goes_on_with_the_next(
     assert len(err) == 2, err
     assert err[0].startswith(f"mapserver: error: {first}: cannot write its result to ")
     assert err[1].startswith(f"mapserver: error: {second}: cannot write its result to ")
+
+
+def test_process_calls_a_file_a_complete_bundle_lacks_missing_not_late(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The daemon waits for a file an upload has not brought yet; ``process`` runs on bundles
+    said to be complete (session 58's review: it said "is not there yet")."""
+    bundle = make_bundle(tmp_path / "run-1")
+    manifest = yaml.safe_load((bundle / "bundle.yaml").read_text())
+    manifest["nav2_map"] = "gone.yaml"
+    (bundle / "bundle.yaml").write_text(yaml.safe_dump(manifest))
+    assert main(["process", "--outbox", str(tmp_path / "out"), str(bundle)]) == 1
+    err = capsys.readouterr().err
+    assert err == f"mapserver: error: {bundle / 'bundle.yaml'}: nav2_map 'gone.yaml' is missing\n"

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mapserver.config import Config, load_config
+from mapserver.config import CONFIG_HELP, Config, load_config
 from mapserver.errors import ConfigError
 from mapserver.fleet.db import MAX_ROW_ID
 
@@ -169,7 +169,7 @@ def _leaf(
     p: argparse.ArgumentParser = sub.add_parser(
         name, help=help_text, description=description, **extra
     )
-    p.add_argument("--config", type=Path, default=None)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE", help=CONFIG_HELP)
     p.set_defaults(func=func)
     return p
 
@@ -198,7 +198,13 @@ def register(sub: Any) -> None:
     )
     p.add_argument("name", help="the map's name: letters, digits, '.', '_', '-'")
     p.add_argument("map_yaml", type=Path, help="the map's YAML (ROS map_server format)")
-    _leaf(msub, "list", "the stored maps with their current version", _cmd_maps_list)
+    _leaf(
+        msub,
+        "list",
+        "the stored maps with their current version",
+        _cmd_maps_list,
+        "example:\n  mapserver maps list --config /etc/mapserver/mapserver.yaml",
+    )
     p = _leaf(
         msub,
         "show",
@@ -226,7 +232,13 @@ def register(sub: Any) -> None:
         epilog="example:\n  mapserver changes list --state confirmed\n  mapserver changes approve 17",
     )
     csub = changes.add_subparsers(dest="changes_command", required=True)
-    p = _leaf(csub, "list", "tracked changes, oldest first", _cmd_changes_list)
+    p = _leaf(
+        csub,
+        "list",
+        "tracked changes, oldest first",
+        _cmd_changes_list,
+        "example:\n  mapserver changes list --state confirmed --map depot",
+    )
     p.add_argument("--state", choices=STATES, default=None)
     p.add_argument("--map", default=None, help="only this map's changes")
     p = _leaf(
