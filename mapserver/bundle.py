@@ -30,6 +30,7 @@ from mapserver.errors import (
     BundleError,
     BundleIncomplete,
     ChecksumMismatch,
+    FileNotThere,
     describe_validation,
     no_such_path,
 )
@@ -490,7 +491,7 @@ def check_bundle_files(
             continue
         yaml_path = safe_member(bundle_dir, name, what=f"{key}_map", source=source)
         if not yaml_path.is_file():
-            raise BundleIncomplete(f"{key}_map '{name}' is not there yet", file=source)
+            raise FileNotThere(f"{key}_map '{name}'", file=source)
         image_name = map_image_name(yaml_path)
         image_rel = (
             str(Path(name).parent / image_name)
@@ -499,22 +500,20 @@ def check_bundle_files(
         )
         image_path = safe_member(bundle_dir, image_rel, what="map image", source=yaml_path)
         if not image_path.is_file():
-            raise BundleIncomplete(f"map image '{image_name}' is not there yet", file=yaml_path)
+            raise FileNotThere(f"map image '{image_name}'", file=yaml_path)
         yamls[key], images[key] = yaml_path, image_path
     checksummed = []
     for name, expected in (manifest.checksums or {}).items():
         path = safe_member(bundle_dir, name, what="checksummed file", source=source)
         if not path.is_file():
-            raise BundleIncomplete(f"checksummed file '{name}' is not there yet", file=source)
+            raise FileNotThere(f"checksummed file '{name}'", file=source)
         checksummed.append((name, expected.lower(), path))
     # Hashed once every file is there: a ChecksumMismatch means a bundle with nothing missing.
     for name, expected, path in checksummed if verify_checksums else []:
         try:
             actual = sha256_file(path)
         except FileNotFoundError:
-            raise BundleIncomplete(
-                f"checksummed file '{name}' is not there yet", file=source
-            ) from None
+            raise FileNotThere(f"checksummed file '{name}'", file=source) from None
         except PermissionError as error:
             raise BundleError(
                 f"checksummed file '{name}' cannot be read: {error.strerror}", file=path

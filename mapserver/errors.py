@@ -72,6 +72,16 @@ class BundleIncomplete(BundleError):
     """The bundle is not complete yet (a file is missing, or its checksum does not match yet)."""
 
 
+class FileNotThere(BundleIncomplete):
+    """A file the bundle names is not there: not yet, while an upload goes on; missing, for a
+    bundle said to be complete (``mapserver process``). ``what`` names it ("nav2_map
+    'map.yaml'")."""
+
+    def __init__(self, what: str, *, file: str | Path) -> None:
+        self.what = what
+        super().__init__(f"{what} is not there yet", file=file)
+
+
 class ChecksumMismatch(BundleIncomplete):
     """Every file is there, and one's sha256 is not the one the manifest gives: still being
     rewritten, or a bundle that will never be right. ``expected`` and ``actual`` are hex."""

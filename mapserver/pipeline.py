@@ -40,6 +40,7 @@ from mapserver.config import Config
 from mapserver.errors import (
     BundleError,
     BundleIncomplete,
+    FileNotThere,
     MapFileError,
     MapserverError,
     OutOfMemory,
@@ -193,7 +194,8 @@ def _load(bundle_dir: Path, config: Config, *, checksums_verified: bool) -> _Inp
         )
     except BundleIncomplete as error:
         # process runs on bundles said to be complete: a missing file is an error here.
-        raise BundleError(error.problem, file=error.file) from None
+        problem = f"{error.what} is missing" if isinstance(error, FileNotThere) else error.problem
+        raise BundleError(problem, file=error.file) from None
     # The sanity limits on the maps are checked from the YAML and the image header: before
     # anything is decoded.
     resolutions, extent = limits.resolution_range_m, limits.max_map_extent_m
