@@ -62,6 +62,13 @@ def test_a_bundle_page_shows_its_overlay_differences_and_change_ids(site: Config
     result = yaml.safe_load((site.outbox / "depot-demo-01" / "result.yaml").read_text())
     for d in result["differences"]:
         assert f'href="/changes/{d["change"]}"' in page.text
+    # The result's versions are the bundle's, not live ones (session 58's review: a page said
+    # "current 2" after a rollback had made version 3 current).
+    m = result["map"]
+    assert (
+        f"navigated on version {m['version']} (version {m['current_version']} was current "
+        "when this bundle was processed)" in page.text
+    )
     image = c.get("/bundles/depot-demo-01/overlay.png")
     assert image.content == (site.outbox / "depot-demo-01" / "overlay.png").read_bytes()
     failed = c.get("/bundles/broken-upload")
@@ -100,6 +107,11 @@ def test_lists_are_paginated_by_key_without_repeats_or_gaps(tmp_path: Path) -> N
     assert times == sorted(times, reverse=True)
     html = c.get("/bundles").text
     assert "Older" in html
+    # A mistyped cursor is refused, not read as the first page (session 58's review).
+    for path in ("/api/bundles", "/api/failures"):
+        bad = c.get(path, params={"before": "garbage"})
+        assert bad.status_code == 422 and "not a page cursor" in bad.text
+    assert c.get("/bundles", params={"before": "garbage"}).status_code == 200
 
 
 def test_robots_fetch_current_yaml_and_images_byte_for_byte_with_etags(site: Config) -> None:
@@ -117,6 +129,24 @@ def test_robots_fetch_current_yaml_and_images_byte_for_byte_with_etags(site: Con
         hashlib.sha256(image.content).hexdigest()
         == hashlib.sha256((site.maps / "depot" / image_name).read_bytes()).hexdigest()
     )
+
+
+def test_a_browser_gets_its_errors_as_pages_and_a_program_as_json(site: Config) -> None:
+    """Session 58's review: /maps/nosuch and /changes/abc answered a browser with JSON."""
+    c = client(site)
+    html = {"Accept": "text/html,application/xhtml+xml"}
+    missing = c.get("/maps/nosuch", headers=html)
+    assert missing.status_code == 404 and missing.headers["content-type"].startswith("text/html")
+    assert "404: Not Found" in missing.text and 'href="/"' in missing.text
+    bad = c.get("/changes/abc", headers=html)
+    assert bad.status_code == 422 and bad.headers["content-type"].startswith("text/html")
+    assert "change_id" in bad.text
+    # The API, an image, the metrics: JSON or the status alone, whatever the browser accepts.
+    api = c.get("/api/maps/nosuch", headers=html)
+    assert api.status_code == 404 and api.headers["content-type"] == "application/json"
+    assert c.get("/maps/nosuch").headers["content-type"] == "application/json"  # no Accept
+    image = c.get("/bundles/nosuch/overlay.png", headers=html)
+    assert image.status_code == 404 and "html" not in image.headers["content-type"]
 
 
 def test_paths_from_requests_never_leave_the_folders(site: Config, tmp_path: Path) -> None:

@@ -19,16 +19,23 @@ from collections import OrderedDict
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timedelta, timezone
+from http import HTTPStatus
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Form, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
+from fastapi.exception_handlers import (
+    http_exception_handler,
+    request_validation_exception_handler,
+)
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, PlainTextResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from mapserver import __version__
 from mapserver.bundle import BUNDLE_ID_RE
@@ -432,11 +439,19 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
 
     # -- API: bundles and failures -------------------------------------------------------------
 
+    def api_cursor(before: str | None) -> tuple[str, str] | None:
+        """The API's ``before``: a page's ``next``, or nothing (a mistyped cursor is refused,
+        not read as the first page; the HTML pages, typed by people, are lenient)."""
+        key = parse_cursor(before)
+        if before and key is None:
+            raise HTTPException(422, "before: not a page cursor (give the previous page's next)")
+        return key
+
     @app.get("/api/bundles", response_model=BundlePage, tags=["bundles"])
     def api_bundles(
         before: str | None = None, limit: Annotated[int, Query(ge=1, le=1000)] = page_size
     ) -> BundlePage:
-        rows, nxt = _page(index.results(limit + 1, parse_cursor(before)), limit)
+        rows, nxt = _page(index.results(limit + 1, api_cursor(before)), limit)
         return BundlePage(items=[BundleOut.of(r) for r in rows], next=nxt)
 
     @app.get("/api/bundles/{bundle_id}", tags=["bundles"])
@@ -451,7 +466,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     def api_failures(
         before: str | None = None, limit: Annotated[int, Query(ge=1, le=1000)] = page_size
     ) -> FailurePage:
-        rows, nxt = _page(index.failures(limit + 1, parse_cursor(before)), limit)
+        rows, nxt = _page(index.failures(limit + 1, api_cursor(before)), limit)
         return FailurePage(
             items=[
                 FailureOut(
@@ -754,5 +769,44 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     @app.exception_handler(MapserverError)
     def mapserver_error(request: Request, error: MapserverError) -> Response:
         return PlainTextResponse(error.reason, status_code=500)
+
+    def for_a_person(request: Request) -> bool:
+        """A page a browser asked for (not the API, the metrics, an image or a map file):
+        its errors are pages too (session 58's review: /maps/nosuch answered JSON)."""
+        path = request.url.path
+        machine = path.startswith("/api/") or path in ("/metrics", "/healthz")
+        files = path.endswith((".png", ".yaml", ".pgm"))
+        return not machine and not files and "text/html" in request.headers.get("accept", "")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, error: StarletteHTTPException) -> Response:
+        if for_a_person(request) and error.status_code >= 400:
+            title = HTTPStatus(error.status_code).phrase
+            return render(
+                request,
+                "error.html",
+                status_code=error.status_code,
+                code=error.status_code,
+                title=title,
+                detail=str(error.detail),
+            )
+        return await http_exception_handler(request, error)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, error: RequestValidationError) -> Response:
+        if for_a_person(request):
+            where = "; ".join(
+                f"{'.'.join(str(x) for x in e.get('loc', ())[1:])}: {e.get('msg', '')}"
+                for e in error.errors()
+            )
+            return render(
+                request,
+                "error.html",
+                status_code=422,
+                code=422,
+                title="not a valid address",
+                detail=where or "the address does not name anything here",
+            )
+        return await request_validation_exception_handler(request, error)
 
     return app
