@@ -31,6 +31,7 @@ import yaml
 from mapserver.bundle import UPLOAD_TO
 from mapserver.config import (
     CONFIG_HELP,
+    DEMO_MARKER,
     ENV_VAR,
     Config,
     check_paths,
@@ -475,13 +476,12 @@ def _cmd_bundle(args: argparse.Namespace) -> int:
 # -- mapserver demo --------------------------------------------------------------------------
 
 SAMPLES = Path(__file__).parent / "data" / "samples"
-_DEMO_MARKER = ".mapserver-demo"
 _DEMO_DIRS = ("inbox", "outbox", "archive", "failed", "maps")
 
 
 def _prepare_demo_dir(root: Path) -> None:
     if root.exists() and any(root.iterdir()):
-        if not (root / _DEMO_MARKER).is_file():
+        if not (root / DEMO_MARKER).is_file():
             raise MapserverError(
                 "exists and is not a demo folder made by 'mapserver demo'; choose another with "
                 "--dir",
@@ -492,7 +492,7 @@ def _prepare_demo_dir(root: Path) -> None:
         for name in _DEMO_DIRS:  # what the previous demo made, nothing else
             shutil.rmtree(root / name, ignore_errors=True)
     root.mkdir(parents=True, exist_ok=True)
-    (root / _DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
+    (root / DEMO_MARKER).write_text("made by 'mapserver demo'; it may delete its subfolders\n")
     for name in _DEMO_DIRS:  # made here: the daemon warns about folders it has to create
         (root / name).mkdir()
     config: dict[str, Any] = {name: name for name in _DEMO_DIRS}

@@ -19,6 +19,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from mapserver.errors import ConfigError, MapserverError, describe_validation, no_such_path
 
 ENV_VAR = "MAPSERVER_CONFIG"
+# The file `mapserver demo` leaves in its folder (beside the configuration it writes there):
+# the folder is a demo's, which it may clear and whose stopped daemon is no fault.
+DEMO_MARKER = ".mapserver-demo"
 # What every command's --config says of it (how load_config finds the file).
 CONFIG_HELP = (
     "the configuration file (default: $MAPSERVER_CONFIG, else the built-in defaults, with every "

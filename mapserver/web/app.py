@@ -39,7 +39,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from mapserver import __version__
 from mapserver.bundle import BUNDLE_ID_RE
-from mapserver.config import Config
+from mapserver.config import DEMO_MARKER, Config
 from mapserver.errors import MapserverError, StoreError
 from mapserver.fleet.db import MAX_ROW_ID
 from mapserver.fleet.model import STATES, ChangeInfo, VersionInfo
@@ -568,6 +568,8 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
             recent=index.results(10),
             failures=index.failures(5),
             degraded=r.degraded,
+            # A demo's folder: its daemon stopped once the samples were processed.
+            demo=config.inbox.parent if (config.inbox.parent / DEMO_MARKER).is_file() else None,
         )
 
     @app.get("/bundles", response_class=HTMLResponse, include_in_schema=False)
