@@ -5,7 +5,7 @@ global map."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -120,12 +120,41 @@ def _painted(
     return np.asarray(cv2.LUT(cv2.merge([colour_of] * 3), palette), np.uint8)
 
 
-def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:
-    x, y = 8, 8
+def _legend(
+    image: NDArray[np.uint8],
+    items: list[tuple[str, BGR]],
+    *,
+    quiet: tuple[int, ...],
+    boxes: Sequence[tuple[int, int, int, int]] = (),
+    spare_bottom_left: bool = False,
+) -> None:
+    """The legend, in the corner of ``image`` where it hides the least: over none of the
+    differences' ``boxes`` (x0, y0, x1, y1 pixels) if it can, and over the fewest pixels that
+    are not one of the ``quiet`` greys (free floor, unknown), top left when they tie.
+    ``spare_bottom_left``: a title is written there. (Session 58's review: always top left, it
+    covered a corner of the depot's building, where a difference would have been hidden.)"""
     height = 22 * len(items) + 8
     width = (
         12 + max(cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0] for t, _ in items) + 30
     )
+    h, w = image.shape[:2]
+    right, bottom = w - width - 8, h - height - 8
+    corners = [(8, 8)]
+    if right > 8 + width and bottom > 8 + height:  # else the corners overlap: top left only
+        corners += [(right, 8), (right, bottom)] + ([] if spare_bottom_left else [(8, bottom)])
+
+    def hidden(corner: tuple[int, int]) -> tuple[int, int]:
+        cx, cy = corner
+        x0, y0, x1, y1 = cx - 4, cy - 4, cx + width, cy + height
+        over = sum(
+            bx0 <= x1 and x0 <= bx1 and by0 <= y1 and y0 <= by1 for bx0, by0, bx1, by1 in boxes
+        )
+        part = image[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1]
+        grey = (part[..., 0] == part[..., 1]) & (part[..., 1] == part[..., 2])
+        calm = grey & np.isin(part[..., 0], quiet)
+        return over, int(np.count_nonzero(~calm))
+
+    x, y = min(corners, key=hidden)  # the first of the least hidden: top left on a tie
     cv2.rectangle(image, (x - 4, y - 4), (x + width, y + height), (255, 255, 255), -1)
     cv2.rectangle(image, (x - 4, y - 4), (x + width, y + height), (90, 90, 90), 1)
     for i, (text, colour) in enumerate(items):
@@ -143,7 +172,12 @@ def _legend(image: NDArray[np.uint8], items: list[tuple[str, BGR]]) -> None:
         )
 
 
-def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Difference]) -> None:
+def _boxes(
+    image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Difference]
+) -> list[tuple[int, int, int, int]]:
+    """Each difference's numbered box; returns the boxes, (x0, y0, x1, y1) image pixels with
+    their labels, for what is drawn after them to keep clear of."""
+    drawn = []
     for number, d in enumerate(diffs, start=1):
         colour = ADDED if d.kind == "added" else REMOVED
         lo = window.to_image(grid, np.array([[d.bbox[0], d.bbox[3]]]))[0]
@@ -154,6 +188,7 @@ def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Dif
         label = str(number)
         (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.55, 2)
         tl = (p0[0], max(p0[1] - th - 6, 0))
+        drawn.append((min(p0[0], tl[0]), min(p0[1], tl[1]), max(p1[0], tl[0] + tw + 6), p1[1]))
         cv2.rectangle(image, tl, (tl[0] + tw + 6, tl[1] + th + 6), colour, -1)
         cv2.putText(
             image,
@@ -165,6 +200,7 @@ def _boxes(image: NDArray[np.uint8], grid: Grid, window: Window, diffs: list[Dif
             2,
             cv2.LINE_AA,
         )
+    return drawn
 
 
 def with_banner(image: NDArray[np.uint8], text: str) -> NDArray[np.uint8]:
@@ -261,7 +297,7 @@ def overlay(
         cv2.polylines(image, [pts], True, ROI_COLOUR, 2, cv2.LINE_AA)
     if route_xy is not None and len(route_xy) > 1:
         cv2.polylines(image, [window.to_image(grid, route_xy)], False, ROUTE, 2, cv2.LINE_AA)
-    _boxes(image, grid, window, differences)
+    boxes = _boxes(image, grid, window, differences)
     n_added = sum(d.kind == "added" for d in differences)
     items = [
         (f"added obstacle ({n_added})", ADDED),
@@ -273,7 +309,7 @@ def overlay(
         items.append(("robot route", ROUTE))
     if left_out is not None and left_out.any():
         items.append(("not compared (alignment not trusted there)", LEFT_OUT))
-    _legend(image, items)
+    _legend(image, items, quiet=(255, 205), boxes=boxes, spare_bottom_left=bool(title))
     if title:
         h = image.shape[0]
         cv2.putText(
@@ -303,8 +339,8 @@ def diff_image(
             (_mask_scaled(_crop(removed, window), window), REMOVED),
         ],
     )
-    _boxes(image, grid, window, differences)
-    _legend(image, [("added", ADDED), ("removed", REMOVED)])
+    boxes = _boxes(image, grid, window, differences)
+    _legend(image, [("added", ADDED), ("removed", REMOVED)], quiet=(255,), boxes=boxes)
     return with_banner(image, banner) if banner else image
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapserver import render
+from mapserver.cluster import Difference
 from mapserver.grid import Grid
 from mapserver.maps import FREE, OCCUPIED
 
@@ -76,3 +77,37 @@ def test_banner_lines_keep_whole_parts_and_words() -> None:
         "averyveryverylongword",
         "x",
     ]
+
+
+def _legend_corner(image: np.ndarray) -> str:
+    """Which quarter of ``image`` holds the legend's frame (its (90, 90, 90) outline)."""
+    rows, cols = np.nonzero((image == 90).all(axis=2))
+    h, w = image.shape[:2]
+    return ("top" if rows.mean() < h / 2 else "bottom") + (
+        " left" if cols.mean() < w / 2 else " right"
+    )
+
+
+def test_the_legend_goes_where_it_hides_the_least() -> None:
+    """Session 58's review: always top left, the legend covered a corner of the building in
+    the demo's overlay, where a difference would have been hidden."""
+    grid = Grid(0.0, 0.0, 0.05, 400, 300)  # 20 m x 15 m, drawn at one pixel a cell
+    window = render.window_for(grid, np.ones(grid.shape, bool), margin_m=0.0, max_side_px=4000)
+    global_state = np.full(grid.shape, FREE, np.uint8)
+    local = np.full(grid.shape, FREE, np.uint8)
+    empty = render.overlay(grid, window, global_state, local, [], [])
+    assert _legend_corner(empty) == "top left"  # nothing anywhere: where it always was
+    # A difference in the top left corner (x 0.5-3 m, y 12.5-14.5 m): the legend moves away.
+    box = Difference("added", (1.75, 13.5), (0.5, 12.5, 3.0, 14.5), 5.0, 2000)
+    over = render.overlay(grid, window, global_state, local, [], [box])
+    assert _legend_corner(over) == "top right"
+    # Walls along the top too: the bottom right (the bottom left holds the title).
+    global_state[:60, :] = OCCUPIED
+    titled = render.overlay(grid, window, global_state, local, [], [box], title="run-1")
+    assert _legend_corner(titled) == "bottom right"
+    diff = render.diff_image(grid, window, global_state, *(np.zeros(grid.shape, bool),) * 2, [box])
+    # Ties go top left, top right, bottom right, bottom left, in that order.
+    assert _legend_corner(diff) == "bottom right"
+    # Walls everywhere: it hides walls, never the difference (which has the fewest pixels).
+    walls = np.full(grid.shape, OCCUPIED, np.uint8)
+    assert _legend_corner(render.overlay(grid, window, walls, local, [], [box])) == "top right"
