@@ -225,7 +225,9 @@ def align_pieces(
     chain that holds the last piece: when the prior is off and the last piece took a wrong
     match (repeated rooms), the rest of the route, consistent with itself, was left out with
     it. The chain then grows outwards with the pieces beyond it aligned again from its ends
-    (:func:`grow_chain`). ``view`` must cover where the pieces land.
+    (:func:`grow_chain`). A piece still left out beside the chain is aligned again in halves,
+    which drift bends half as far (:func:`_split_left_out`): the pieces are then numbered
+    again in route order. ``view`` must cover where the pieces land.
 
     With ``anchored``, the last piece (aligned first) must satisfy it, else None: nothing more
     is aligned.
@@ -245,13 +247,23 @@ def align_pieces(
         """Piece ``i`` aligned from the best of ``starts``, turned about its run's point
         ``pivot_at`` (where it meets the piece its start came from: the end of its run, the
         route's next piece; the start, the one before)."""
-        mask = labels == i
         area = float(cells[i]) * cell_m2
-        junction = (float(runs[i][0, 0]), float(runs[i][0, 1]))
-        walls = int(walls_of[i])
+        return fit_cells(i, labels == i, runs[i], area, int(walls_of[i]), starts, pivot_at)
+
+    def fit_cells(
+        i: int,
+        mask: NDArray[np.bool_],
+        run: FloatArray,
+        area: float,
+        walls: int,
+        starts: list[Transform2D],
+        pivot_at: int,
+    ) -> Piece:
+        """The cells ``mask`` seen from ``run`` aligned as piece ``i`` (see ``fit``)."""
+        junction = (float(run[0, 0]), float(run[0, 1]))
         if walls < min_walls:
             # Too few walls to align: the piece keeps its start, never scores.
-            return Piece(i, mask, starts[0], 0.0, False, area, junction, runs[i], aligned=False)
+            return Piece(i, mask, starts[0], 0.0, False, area, junction, run, aligned=False)
         sub = _sub_map(local, mask)
         result = max(
             (
@@ -263,7 +275,7 @@ def align_pieces(
                     search_theta_rad=search_theta_rad,
                     narrow_theta_rad=search_theta_rad,
                     min_score=min_score,
-                    pivot_slam=(float(runs[i][pivot_at, 0]), float(runs[i][pivot_at, 1])),
+                    pivot_slam=(float(run[pivot_at, 0]), float(run[pivot_at, 1])),
                 )
                 for t0 in starts
             ),
@@ -272,7 +284,7 @@ def align_pieces(
         )
         # Compared or not, the chain decides below.
         t, ok = result.nav2_from_slam, result.trusted
-        return Piece(i, mask, t, result.score, False, area, junction, runs[i], aligned=ok)
+        return Piece(i, mask, t, result.score, False, area, junction, run, aligned=ok)
 
     for i in reversed(range(len(runs))):
         starts = [prior] if from_piece or also_from is None else [prior, also_from]
@@ -287,7 +299,127 @@ def align_pieces(
     if keep:
         found, keep = grow_chain(found, keep, lambda i, t, at: fit(i, [t], at), agree_m)
     found = [dataclasses.replace(p, trusted=p.index in keep) for p in found]
+    if keep:
+        # A piece left out beside the chain, aligned again in halves (drift bends each less).
+        found = _split_left_out(local, found, fit_cells, agree_m, min_walls)
     return Pieces(tuple(found), observed)
+
+
+# A piece left out of the chain is cut in two when its run is this long (metres): each half
+# at least half of it, a stretch of route a drift of 0.1 degree per metre turns by 0.5-1
+# degree, where a whole piece, bent twice as far, fitted nowhere well enough.
+_SPLIT_MIN_RUN_M = 10.0
+
+
+def _run_length_m(run: FloatArray) -> float:
+    return float(np.hypot(*np.diff(run, axis=0).T).sum()) if len(run) > 1 else 0.0
+
+
+def _halves(run: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """The two halves of ``run`` (M, 2) by path length, sharing their middle pose; None when
+    it is too short to cut (fewer than three poses)."""
+    if len(run) < 3:
+        return None
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(run, axis=0).T))])
+    k = int(np.clip(np.searchsorted(s, s[-1] / 2), 1, len(run) - 2))
+    return run[: k + 1], run[k:]
+
+
+def _split_left_out(
+    local: OccupancyMap,
+    pieces: list[Piece],
+    fit_cells: Callable[..., Piece],
+    agree_m: float,
+    min_walls: int,
+) -> list[Piece]:
+    """The pieces with each one left out of the chain, next to a trusted one on the route,
+    replaced by its two halves when a half joins the chain (:func:`_halves_joined`); a piece
+    whose halves join nothing stays as it was. The pieces are numbered again in route order.
+
+    A long route's drift bends a 20 m piece twice as far as either half: a piece that aligned
+    nowhere well enough as a whole may in halves, and the half next to the chain, the one its
+    neighbour's transform carries best, first."""
+    out: list[Piece] = []
+    for i, piece in enumerate(pieces):
+        before = pieces[i - 1] if i > 0 and pieces[i - 1].trusted else None
+        after = pieces[i + 1] if i + 1 < len(pieces) and pieces[i + 1].trusted else None
+        split = None
+        if not piece.trusted and (before or after):
+            split = _halves_joined(local, piece, before, after, fit_cells, agree_m, min_walls)
+        out.extend(split or [piece])
+    return [dataclasses.replace(p, index=n) for n, p in enumerate(out)]
+
+
+def _halves_joined(
+    local: OccupancyMap,
+    piece: Piece,
+    before: Piece | None,
+    after: Piece | None,
+    fit_cells: Callable[..., Piece],
+    agree_m: float,
+    min_walls: int,
+) -> list[Piece] | None:
+    """``piece`` (left out) cut in two at the middle of its run (of ``_SPLIT_MIN_RUN_M`` or
+    more), its cells given to the half that saw them (:func:`label_cells`), when a half joins
+    the trusted piece next to it on the route (``before`` or ``after``, None when not trusted):
+    aligned from that neighbour's transform (``fit_cells``, turned about the point where they
+    meet), it aligns, meets the neighbour within ``agree_m`` there and turns no more than
+    ``_MAX_TURN_RAD`` from it; the far half then joins the near one the same way, or is left
+    out with the piece's transform. None when no half joins."""
+    halves = _halves(piece.run) if _run_length_m(piece.run) >= _SPLIT_MIN_RUN_M else None
+    if halves is None:
+        return None
+    x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
+    sub_labels = label_cells(_sub_map(local, piece.mask), list(halves))
+    masks = []
+    for k in range(2):
+        m = np.zeros_like(piece.mask)
+        m[y : y + h, x : x + w] = sub_labels == k
+        masks.append(m & piece.mask)
+    cell_m2 = local.resolution**2
+
+    def half(k: int, start: Transform2D, pivot_at: int) -> Piece:
+        walls = int(np.count_nonzero(masks[k] & (local.state == OCCUPIED)))
+        area = float(np.count_nonzero(masks[k])) * cell_m2
+        return fit_cells(piece.index, masks[k], halves[k], area, walls, [start], pivot_at)
+
+    def joins(p: Piece, end: Piece, at: FloatArray) -> bool:
+        return _joins(p, end, at, end.nav2_from_slam.theta, agree_m, _MAX_TURN_RAD)
+
+    got: list[Piece | None] = [None, None]
+    # From each trusted side, its near half (meeting the neighbour at the run's start, or at
+    # its end), then the far half from the near one (meeting it at the middle).
+    for near, end in ((0, before), (1, after)):
+        if end is None or got[near] is not None:
+            continue
+        pivot = 0 if near == 0 else -1
+        p = half(near, end.nav2_from_slam, pivot)
+        if not joins(p, end, halves[near][pivot][None]):
+            continue
+        got[near] = dataclasses.replace(p, trusted=True)
+        far = 1 - near
+        if got[far] is None:
+            q = half(far, p.nav2_from_slam, pivot)
+            if joins(q, p, halves[1][:1]):
+                got[far] = dataclasses.replace(q, trusted=True)
+    if got[0] is None and got[1] is None:
+        return None
+    out = []
+    for k, kept in enumerate(got):
+        if kept is None:  # the half nothing joined: left out, as its piece was
+            walls = int(np.count_nonzero(masks[k] & (local.state == OCCUPIED)))
+            area = float(np.count_nonzero(masks[k])) * cell_m2
+            run = halves[k]
+            kept = dataclasses.replace(
+                piece,
+                mask=masks[k],
+                area_m2=area,
+                junction=(float(run[0, 0]), float(run[0, 1])),
+                run=run,
+                aligned=piece.aligned and walls >= min_walls,
+            )
+        out.append(kept)
+    return out
 
 
 # How far (radians) a piece joining the chain may turn from the heading the chain's drift

@@ -1160,3 +1160,99 @@ def test_a_route_off_the_map_is_measured_from_the_map_s_edge() -> None:
     local = from_states(state, 0.1, (0.0, 0.0, 0.0))
     route = np.array([[5.0, 1.0], [5.0, 2.0], [11.0, 2.0], [11.0, 19.0]])
     assert piecewise.seen_reach_m(local, route) <= 2.0
+
+
+def _corridor_pieces(
+    run_m: float = 20.0,
+) -> tuple[OccupancyMap, list[piecewise.Piece]]:
+    """A corridor 3 x run_m m long and 4 m wide (0.2 m cells), walls along both sides, cut into
+    three pieces of a route east along its middle: 0 and 2 trusted, 1 left out."""
+    res, width_m = 0.2, 4.0
+    h, w = round(width_m / res), round(3 * run_m / res)
+    state = np.full((h, w), FREE, np.uint8)
+    state[0, :] = state[-1, :] = OCCUPIED
+    local = from_states(state, res, (0.0, 0.0, 0.0))
+    xs = (np.arange(w) + 0.5) * res
+    pieces = []
+    for i in range(3):
+        x0 = i * run_m
+        run = np.stack([np.linspace(x0, x0 + run_m, 21), np.full(21, width_m / 2)], axis=1)
+        mask = np.zeros((h, w), bool)
+        mask[:, (xs >= x0) & (xs < x0 + run_m)] = True
+        trusted = i != 1
+        pieces.append(
+            piecewise.Piece(
+                i,
+                mask,
+                Transform2D(0.0, 0.0, 0.0) if trusted else Transform2D(0.0, 2.0, 0.0),
+                0.9 if trusted else 0.4,
+                trusted,
+                float(mask.sum()) * res**2,
+                (x0, width_m / 2),
+                run,
+                aligned=trusted,
+            )
+        )
+    return local, pieces
+
+
+def test_a_piece_left_out_is_aligned_again_in_halves_from_the_chain_either_side() -> None:
+    """Piece 1 did not align whole. Its west half, aligned from piece 0's transform, joins
+    (0.1 m off where they meet); its east half, aligned from that half's, takes a match 2 m
+    off and does not, but aligned from piece 2's transform it joins. The pieces are numbered
+    again in route order, each half holding the cells seen from its half of the run."""
+    local, pieces = _corridor_pieces()
+    calls: list[tuple[float, Transform2D, int]] = []
+
+    def fit_cells(
+        i: int,
+        mask: np.ndarray,
+        run: np.ndarray,
+        area: float,
+        walls: int,
+        starts: list[Transform2D],
+        pivot_at: int,
+    ) -> piecewise.Piece:
+        start = starts[0]
+        calls.append((float(run[0, 0]), start, pivot_at))
+        east_from_west = run[0, 0] >= 30.0 and start.tx != 0.0
+        t = Transform2D(0.0, start.tx + (2.0 if east_from_west else 0.1), 0.0)
+        junction = (float(run[0, 0]), float(run[0, 1]))
+        return piecewise.Piece(i, mask, t, 0.8, False, area, junction, run, aligned=True)
+
+    out = piecewise._split_left_out(local, pieces, fit_cells, 0.5, min_walls=10)
+    assert [p.index for p in out] == [0, 1, 2, 3]
+    assert [p.trusted for p in out] == [True, True, True, True]
+    west, east = out[1], out[2]
+    assert (west.run[0, 0], west.run[-1, 0]) == (20.0, 30.0)
+    assert (east.run[0, 0], east.run[-1, 0]) == (30.0, 40.0)
+    assert not (west.mask & east.mask).any()
+    assert np.array_equal(west.mask | east.mask, pieces[1].mask)
+    xs = (np.nonzero(west.mask)[1] + 0.5) * 0.2
+    assert xs.min() >= 20.0 and xs.max() < 30.5
+    assert west.nav2_from_slam.tx == pytest.approx(0.1)
+    assert east.nav2_from_slam.tx == pytest.approx(0.1)
+    # West half from piece 0 (turned about the run's start), east half from the west half's
+    # transform (about its start: where they meet), then from piece 2 (about its run's end).
+    assert [(x, round(t.tx, 3), at) for x, t, at in calls] == [
+        (20.0, 0.0, 0),
+        (30.0, 0.1, 0),
+        (30.0, 0.0, -1),
+    ]
+
+
+def test_a_piece_whose_halves_join_nothing_stays_as_it_was() -> None:
+    local, pieces = _corridor_pieces()
+
+    def nowhere(i, mask, run, area, walls, starts, pivot_at):  # type: ignore[no-untyped-def]
+        t = Transform2D(0.0, starts[0].tx + 2.0, 0.0)
+        return piecewise.Piece(i, mask, t, 0.8, False, area, (0.0, 0.0), run, aligned=True)
+
+    assert piecewise._split_left_out(local, pieces, nowhere, 0.5, min_walls=10) == pieces
+    # A piece whose run is under _SPLIT_MIN_RUN_M is not cut at all.
+    local, short = _corridor_pieces(run_m=8.0)
+
+    def never(*args: object) -> piecewise.Piece:
+        raise AssertionError("a short piece was aligned again")
+
+    assert piecewise._split_left_out(local, short, never, 0.5, min_walls=10) == short
