@@ -749,37 +749,47 @@ class FleetStore:
     def _seen_free_inside(
         self, map_id: int, lattice: Lattice, cid: int, cells: IntArray, state: NDArray[np.uint8]
     ) -> tuple[IntArray, IntArray]:
-        """(rows, cols) of the cells inside removed change ``cid`` (the convex hull of its
-        painted ``cells``) that ``state`` leaves unknown and that the fleet saw free: in at least
-        as many sessions as a cell of it must have seen changed to be painted
-        (``paint_min_sessions``, or all of its sessions when fewer), and more often free than
-        occupied. A map draws a block or a column as its outline round an inside no lidar saw;
-        gone, its outline painted free would leave that inside an island of unknown in the
-        middle of floor the robots drove round (a planner that keeps out of unknown space
-        would still go round it)."""
+        """(rows, cols) of the cells inside removed change ``cid`` that ``state`` (the version
+        being made, its outline painted) leaves unknown, in a patch of unknown enclosed within
+        the convex hull of its painted ``cells`` (touching nothing outside it, nor the map's
+        edge), that the fleet saw free: in at least as many sessions as a cell of it must have
+        seen changed to be painted (``paint_min_sessions``, or all of its sessions when fewer),
+        and more often free than occupied. A map draws a block or a column as its outline round
+        an inside no lidar saw; gone, its outline painted free would leave that inside an island
+        of unknown in the middle of floor the robots drove round (a planner that keeps out of
+        unknown space would still go round it). Unknown that reaches past the change (a room
+        beyond a removed wall that the map never saw) is no part of it: that stays unknown."""
         empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         if len(cells) < 3:
             return empty
         import cv2  # as Lattice.outline: the main process needs it only to publish
 
         rows, cols = lattice.unflat(cells)
-        r0, c0 = int(rows.min()), int(cols.min())
-        window = Window(r0, c0, int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+        # The change's box and a cell round it (within the map): what lies past the hull.
+        r0, c0 = max(int(rows.min()) - 1, 0), max(int(cols.min()) - 1, 0)
+        r1 = min(int(rows.max()) + 2, lattice.height)
+        c1 = min(int(cols.max()) + 2, lattice.width)
+        window = Window(r0, c0, r1 - r0, c1 - c0)
         hull = cv2.convexHull(np.stack([cols - c0, rows - r0], axis=1).astype(np.int32))
         inside = np.zeros((window.rows, window.cols), np.uint8)
         cv2.fillConvexPoly(inside, hull, 1)
+        unknown = (state[r0:r1, c0:c1] == UNKNOWN).view(np.uint8)
+        n, labels = cv2.connectedComponents(unknown, connectivity=4)
+        # A patch with a cell outside the hull, or on the window's edge (the map's, where the
+        # window reaches it), is not enclosed.
+        open_ = np.zeros(n, bool)
+        open_[np.unique(labels[(inside == 0) & (unknown == 1)])] = True
+        edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+        open_[np.unique(edge[edge > 0])] = True
+        enclosed = (labels > 0) & ~open_[labels]
+        if not enclosed.any():
+            return empty
         sessions = self._conn.execute(
             "SELECT sessions FROM changes WHERE id = ?", (cid,)
         ).fetchone()[0]
         need = max(1, min(self.settings.paint_min_sessions, int(sessions)))
         seen = evidence.read_window(self._conn, map_id, window)
-        box = (slice(r0, r0 + window.rows), slice(c0, c0 + window.cols))
-        free = (
-            inside.view(bool)
-            & (state[box] == UNKNOWN)
-            & (seen.free >= need)
-            & (seen.free > seen.occupied)
-        )
+        free = enclosed & (seen.free >= need) & (seen.free > seen.occupied)
         fr, fc = np.nonzero(free)
         return fr + r0, fc + c0
 
