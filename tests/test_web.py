@@ -147,6 +147,9 @@ def test_a_browser_gets_its_errors_as_pages_and_a_program_as_json(site: Config) 
     assert c.get("/maps/nosuch").headers["content-type"] == "application/json"  # no Accept
     image = c.get("/bundles/nosuch/overlay.png", headers=html)
     assert image.status_code == 404 and "html" not in image.headers["content-type"]
+    # The page keeps what the error says in its headers (session 58's review: a 405 lost Allow).
+    wrong = c.get("/changes/1/approve", headers=html)
+    assert wrong.status_code == 405 and wrong.headers["allow"] == "POST"
 
 
 def test_paths_from_requests_never_leave_the_folders(site: Config, tmp_path: Path) -> None:

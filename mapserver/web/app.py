@@ -784,7 +784,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     async def http_error(request: Request, error: StarletteHTTPException) -> Response:
         if for_a_person(request) and error.status_code >= 400:
             title = HTTPStatus(error.status_code).phrase
-            return render(
+            page = render(
                 request,
                 "error.html",
                 status_code=error.status_code,
@@ -792,6 +792,9 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
                 title=title,
                 detail=str(error.detail),
             )
+            # What the error says in its headers (a 405's Allow, a 401's WWW-Authenticate).
+            page.headers.update(error.headers or {})
+            return page
         return await http_exception_handler(request, error)
 
     @app.exception_handler(RequestValidationError)
