@@ -364,10 +364,13 @@ def _halves_joined(
     the trusted piece next to it on the route (``before`` or ``after``, None when not trusted):
     aligned from that neighbour's transform (``fit_cells``, turned about the point where they
     meet), it aligns, meets the neighbour within ``agree_m`` there and turns no more than
-    ``_MAX_TURN_RAD`` from it; the far half then joins the near one the same way, or is left
-    out with the piece's transform. None when no half joins."""
+    ``_MAX_TURN_RAD`` from it. A half that joined nothing so is aligned from the other half and
+    joins it the same way at the middle, when it also meets its own side (if trusted) at its
+    end; two halves joined from either side must meet at the middle, else only the better
+    scoring one is kept. A half left out keeps the piece's transform. None when no half joins
+    (and for a piece with no cells)."""
     halves = _halves(piece.run) if _run_length_m(piece.run) >= _SPLIT_MIN_RUN_M else None
-    if halves is None:
+    if halves is None or not piece.mask.any():  # a run another one's blocks took: no cells
         return None
     x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
     sub_labels = label_cells(_sub_map(local, piece.mask), list(halves))
@@ -387,21 +390,28 @@ def _halves_joined(
         return _joins(p, end, at, end.nav2_from_slam.theta, agree_m, _MAX_TURN_RAD)
 
     got: list[Piece | None] = [None, None]
-    # From each trusted side, its near half (meeting the neighbour at the run's start, or at
-    # its end), then the far half from the near one (meeting it at the middle).
-    for near, end in ((0, before), (1, after)):
-        if end is None or got[near] is not None:
-            continue
-        pivot = 0 if near == 0 else -1
-        p = half(near, end.nav2_from_slam, pivot)
-        if not joins(p, end, halves[near][pivot][None]):
-            continue
-        got[near] = dataclasses.replace(p, trusted=True)
-        far = 1 - near
-        if got[far] is None:
-            q = half(far, p.nav2_from_slam, pivot)
-            if joins(q, p, halves[1][:1]):
-                got[far] = dataclasses.replace(q, trusted=True)
+    sides = (before, after)
+    # Where each half meets what lies beyond it: the run's start, its end; and the other half.
+    outer, middle = (halves[0][:1], halves[1][-1:]), halves[1][:1]
+    pivots = (0, -1)  # each half turned about its outer end, where it meets its side
+    # The half next to each trusted side, from that side's transform.
+    for k, side in enumerate(sides):
+        if side is not None:
+            p = half(k, side.nav2_from_slam, pivots[k])
+            got[k] = dataclasses.replace(p, trusted=True) if joins(p, side, outer[k]) else None
+    # A half beside no trusted side, or that did not join its side, from the other half,
+    # turned about the middle where they meet; it must meet its own side too, if trusted.
+    for k in (0, 1):
+        near, side = got[1 - k], sides[k]
+        if got[k] is None and near is not None:
+            q = half(k, near.nav2_from_slam, -1 if k == 0 else 0)
+            if joins(q, near, middle) and (side is None or _meet(q, side, outer[k], agree_m)):
+                got[k] = dataclasses.replace(q, trusted=True)
+    # Two halves joined from either side must meet at the middle (session 58's review), as
+    # neighbours along the chain do: else the better scoring one is kept.
+    first, second = got
+    if first is not None and second is not None and not _meet(first, second, middle, agree_m):
+        got[0 if first.score < second.score else 1] = None
     if got[0] is None and got[1] is None:
         return None
     out = []
@@ -509,6 +519,12 @@ def _measured_at(between: Sequence[Piece], later: Piece) -> FloatArray:
         return np.array([later.junction])
     run = np.concatenate(runs)
     return np.asarray(run[len(run) // 2][None], dtype=float)
+
+
+def _meet(a: Piece, b: Piece, at: FloatArray, agree_m: float) -> bool:
+    """Whether the transforms of pieces ``a`` and ``b`` put ``at`` (1, 2) within ``agree_m``
+    of each other."""
+    return float(apart(a.nav2_from_slam, b.nav2_from_slam, at)[0]) <= agree_m
 
 
 def _joins(

@@ -1196,13 +1196,13 @@ def _corridor_pieces(
     return local, pieces
 
 
-def test_a_piece_left_out_is_aligned_again_in_halves_from_the_chain_either_side() -> None:
-    """Piece 1 did not align whole. Its west half, aligned from piece 0's transform, joins
-    (0.1 m off where they meet); its east half, aligned from that half's, takes a match 2 m
-    off and does not, but aligned from piece 2's transform it joins. The pieces are numbered
-    again in route order, each half holding the cells seen from its half of the run."""
-    local, pieces = _corridor_pieces()
-    calls: list[tuple[float, Transform2D, int]] = []
+def _fit_halves(
+    shifts: dict[tuple[float, int], float], calls: list[tuple[float, float, int]]
+) -> Callable[..., piecewise.Piece]:
+    """A fake ``fit_cells``: the half whose run starts at x, aligned about ``pivot_at``,
+    lands ``shifts[(x, pivot_at)]`` metres east of its start's transform (0.1 when not
+    given), scoring 0.8 (0.7 for the east half); each call is recorded as (x, start's tx,
+    pivot)."""
 
     def fit_cells(
         i: int,
@@ -1213,14 +1213,23 @@ def test_a_piece_left_out_is_aligned_again_in_halves_from_the_chain_either_side(
         starts: list[Transform2D],
         pivot_at: int,
     ) -> piecewise.Piece:
-        start = starts[0]
-        calls.append((float(run[0, 0]), start, pivot_at))
-        east_from_west = run[0, 0] >= 30.0 and start.tx != 0.0
-        t = Transform2D(0.0, start.tx + (2.0 if east_from_west else 0.1), 0.0)
-        junction = (float(run[0, 0]), float(run[0, 1]))
-        return piecewise.Piece(i, mask, t, 0.8, False, area, junction, run, aligned=True)
+        x, start = float(run[0, 0]), starts[0]
+        calls.append((x, round(start.tx, 3), pivot_at))
+        t = Transform2D(0.0, start.tx + shifts.get((x, pivot_at), 0.1), 0.0)
+        score = 0.7 if x >= 30.0 else 0.8
+        return piecewise.Piece(i, mask, t, score, False, area, (x, 2.0), run, aligned=True)
 
-    out = piecewise._split_left_out(local, pieces, fit_cells, 0.5, min_walls=10)
+    return fit_cells
+
+
+def test_a_piece_left_out_is_aligned_again_in_halves_from_the_chain_either_side() -> None:
+    """Piece 1 did not align whole. Its west half, aligned from piece 0's transform, joins
+    (0.1 m off where they meet); its east half, from piece 2's, joins too, and the two meet at
+    the middle. The pieces are numbered again in route order, each half holding the cells
+    seen from its half of the run."""
+    local, pieces = _corridor_pieces()
+    calls: list[tuple[float, float, int]] = []
+    out = piecewise._split_left_out(local, pieces, _fit_halves({}, calls), 0.5, min_walls=10)
     assert [p.index for p in out] == [0, 1, 2, 3]
     assert [p.trusted for p in out] == [True, True, True, True]
     west, east = out[1], out[2]
@@ -1230,15 +1239,60 @@ def test_a_piece_left_out_is_aligned_again_in_halves_from_the_chain_either_side(
     assert np.array_equal(west.mask | east.mask, pieces[1].mask)
     xs = (np.nonzero(west.mask)[1] + 0.5) * 0.2
     assert xs.min() >= 20.0 and xs.max() < 30.5
-    assert west.nav2_from_slam.tx == pytest.approx(0.1)
-    assert east.nav2_from_slam.tx == pytest.approx(0.1)
-    # West half from piece 0 (turned about the run's start), east half from the west half's
-    # transform (about its start: where they meet), then from piece 2 (about its run's end).
-    assert [(x, round(t.tx, 3), at) for x, t, at in calls] == [
-        (20.0, 0.0, 0),
-        (30.0, 0.1, 0),
-        (30.0, 0.0, -1),
-    ]
+    # Each half from the trusted piece beside it, turned about where they meet.
+    assert calls == [(20.0, 0.0, 0), (30.0, 0.0, -1)]
+
+
+def test_a_half_beside_no_trusted_piece_joins_from_the_other_half() -> None:
+    """Piece 2 is left out too: piece 1's east half is aligned from its west half (turned
+    about the middle) and joins. When it lands 0.7 m off the west half it does not."""
+    local, pieces = _corridor_pieces()
+    pieces[2] = dataclasses.replace(pieces[2], trusted=False, aligned=False)
+    calls: list[tuple[float, float, int]] = []
+    out = piecewise._split_left_out(local, pieces, _fit_halves({}, calls), 0.5, min_walls=10)
+    assert [p.trusted for p in out] == [True, True, True, False]
+    assert calls == [(20.0, 0.0, 0), (30.0, 0.1, 0)]
+    assert out[2].nav2_from_slam.tx == pytest.approx(0.2)
+    off = _fit_halves({(30.0, 0): 0.7}, [])
+    out = piecewise._split_left_out(local, pieces, off, 0.5, min_walls=10)
+    assert [p.trusted for p in out] == [True, True, False, False]
+    assert out[2].nav2_from_slam == pieces[1].nav2_from_slam  # left out as its piece was
+
+
+def test_halves_that_do_not_meet_where_the_chain_needs_them_to_are_not_both_trusted() -> None:
+    """Session 58's review: each half was measured only against the piece it joined from.
+    Joined from either side, halves 0.8 m apart at the middle: the better scoring one (the
+    west, 0.8 against 0.7) is kept. Joined from the west half, an east half that misses
+    piece 2 by 0.8 m at its end is left out."""
+    local, pieces = _corridor_pieces()
+    apart = _fit_halves({(30.0, -1): 1.0}, [])  # the east half, from piece 2: 1.1 m east
+    # It misses piece 2 at its own end, so it does not join from there; from the west half
+    # (0.2 m east) it would miss piece 2 by 0.2 m: that one joins.
+    out = piecewise._split_left_out(local, pieces, apart, 0.5, min_walls=10)
+    assert [p.trusted for p in out] == [True, True, True, True]
+    assert out[2].nav2_from_slam.tx == pytest.approx(0.2)
+    # Each joins its own side (0.4 m off it, within 0.5 m) but they are 0.8 m apart.
+    both = _fit_halves({(20.0, 0): -0.4, (30.0, -1): 0.4, (30.0, 0): 0.9}, [])
+    out = piecewise._split_left_out(local, pieces, both, 0.5, min_walls=10)
+    assert [p.trusted for p in out] == [True, True, False, True]
+    assert out[1].nav2_from_slam.tx == pytest.approx(-0.4)
+    # From the west half (0.4 m east), the east half lands 0.8 m east: it meets the west half
+    # (0.4 m) but misses piece 2 at its own end (0.8 m): not joined.
+    far = _fit_halves({(20.0, 0): 0.4, (30.0, -1): 2.0, (30.0, 0): 0.4}, [])
+    out = piecewise._split_left_out(local, pieces, far, 0.5, min_walls=10)
+    assert [p.trusted for p in out] == [True, True, False, True]
+
+
+def test_a_left_out_piece_with_no_cells_is_not_cut() -> None:
+    """Session 58's review: a run whose blocks another run took has no cells; cutting it
+    crashed the bundle (an empty sub-map)."""
+    local, pieces = _corridor_pieces()
+    pieces[1] = dataclasses.replace(pieces[1], mask=np.zeros_like(pieces[1].mask), area_m2=0.0)
+
+    def never(*args: object) -> piecewise.Piece:
+        raise AssertionError("a piece with no cells was aligned")
+
+    assert piecewise._split_left_out(local, pieces, never, 0.5, min_walls=10) == pieces
 
 
 def test_a_piece_whose_halves_join_nothing_stays_as_it_was() -> None:
