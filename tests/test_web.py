@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -186,6 +187,23 @@ def test_review_actions_need_the_token(fresh: Config) -> None:
     assert c.post("/api/changes/9999/reject", headers=AUTH).status_code == 404
     rollback = c.post("/api/maps/depot/rollback", json={"version": 1}, headers=AUTH)
     assert rollback.status_code == 200 and rollback.json()["version"] == 3
+
+
+def test_the_map_page_shows_the_newest_versions_and_links_to_all(tmp_path: Path) -> None:
+    """A map publishing every day has hundreds of versions after a year: its page lists the
+    newest page of them (web.page_size) and links to all."""
+    c = client(build_site(tmp_path / "site", page_size=5))
+    (cid, *_) = confirmed(c)
+    assert c.post(f"/api/changes/{cid}/approve", headers=AUTH).json()["version"] == 2
+    for version in (1, 2, 1, 2, 1):  # versions 3 to 7
+        c.post("/api/maps/depot/rollback", json={"version": version}, headers=AUTH)
+    rows = re.compile(r'href="/maps/depot/versions/(\d+)"')
+    page = c.get("/maps/depot").text
+    assert rows.findall(page) == ["7", "6", "5", "4", "3"]
+    assert "The newest 5 of 7 versions" in page and 'href="/maps/depot?versions=all"' in page
+    every = c.get("/maps/depot", params={"versions": "all"}).text
+    assert rows.findall(every) == ["7", "6", "5", "4", "3", "2"]  # version 1 has no page
+    assert "The newest" not in every
 
 
 def test_forms_need_a_signed_session_and_a_csrf_token(fresh: Config) -> None:

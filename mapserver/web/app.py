@@ -628,6 +628,7 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         name: str,
         state: str | None = None,
         before: Annotated[int | None, Query(ge=0, le=MAX_ROW_ID)] = None,
+        versions: str | None = None,
     ) -> HTMLResponse:
         if state is not None and state not in STATES:
             state = None
@@ -635,11 +636,16 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
         def gather(store: Any) -> dict[str, Any]:
             info = store.map_info(name)
             page, nxt = change_page(store, name, state, before, page_size)
+            newest_first = list(reversed(store.versions(name)))
+            # The newest page of versions unless all are asked for (a map publishing every
+            # day has hundreds after a year).
+            shown = newest_first if versions == "all" else newest_first[:page_size]
             return {
                 "info": info,
                 "changes": page,
                 "next": nxt,
-                "versions": list(reversed(store.versions(name))),
+                "versions": shown,
+                "versions_total": len(newest_first),
             }
 
         data = store_call(gather)
