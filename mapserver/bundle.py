@@ -31,6 +31,7 @@ from mapserver.errors import (
     BundleIncomplete,
     ChecksumMismatch,
     FileNotThere,
+    ManifestNotYaml,
     describe_validation,
     no_such_path,
 )
@@ -322,7 +323,7 @@ def _load(text: str, source: str | Path, *, fallback: bool = False) -> object:
         if fallback:
             return None
         problem = " ".join(str(error).split())
-        raise BundleError(f"not valid YAML: {problem}", file=source) from None
+        raise ManifestNotYaml(f"not valid YAML: {problem}", file=source) from None
 
 
 def _validated(data: object, source: str | Path, limits: LimitsConfig) -> Manifest:

@@ -7,6 +7,7 @@ enough context (the stage, the file, the field) to write one line a person can a
     ``ConfigError``      -- the configuration file is wrong (unknown key, bad value).
     ``MapFileError``     -- a map YAML or image cannot be read or is invalid.
     ``BundleError``      -- a bundle manifest or its files are wrong (bad field, checksum, path).
+        ``ManifestNotYaml`` -- bundle.yaml is not YAML (in an inbox: not yet).
         ``BundleIncomplete`` -- not an error yet: some file is missing or still changing.
             ``ChecksumMismatch`` -- a file's sha256 is not the manifest's (yet).
     ``ProcessingError``  -- the pipeline failed on otherwise valid input.
@@ -66,6 +67,12 @@ class MapFileError(MapserverError):
 
 class BundleError(MapserverError):
     default_stage = "bundle"
+
+
+class ManifestNotYaml(BundleError):
+    """``bundle.yaml`` is not YAML: a bundle said to be complete is wrong; in an inbox, where a
+    bundle is complete only once its manifest parses (contract section 2), an upload that may
+    still be writing it in place."""
 
 
 class BundleIncomplete(BundleError):

@@ -53,7 +53,7 @@ from mapserver.bundle import (
     nested_bundles_hint,
 )
 from mapserver.config import Config, LimitsConfig
-from mapserver.errors import BundleError, BundleIncomplete, ChecksumMismatch
+from mapserver.errors import BundleError, BundleIncomplete, ChecksumMismatch, ManifestNotYaml
 
 log = logging.getLogger(__name__)
 _LIMITS = LimitsConfig()
@@ -208,7 +208,12 @@ def check_entry(path: Path, *, limits: LimitsConfig = _LIMITS) -> BundleFiles:
             raise BundleError("not a regular file or directory", file=rel)
     # The worker reads the trajectory: here its poses are only counted (a 100,000-pose one
     # held this loop for 4-8 s).
-    return check_bundle_files(path, limits=limits, trajectory=False)
+    try:
+        return check_bundle_files(path, limits=limits, trajectory=False)
+    except ManifestNotYaml as error:
+        # Complete only once bundle.yaml parses (contract section 2): an upload that writes it
+        # in place (cp, scp) and pauses is not cut off; stale_after_seconds of it is.
+        raise BundleIncomplete(error.problem_line, file=error.file) from None
 
 
 @dataclass(frozen=True)
