@@ -7,6 +7,7 @@ import hashlib
 import os
 import re
 import shutil
+import socket
 from pathlib import Path
 
 import pytest
@@ -241,8 +242,31 @@ def test_a_non_loopback_address_without_a_token_is_refused(site: Config) -> None
     open_web = site.model_copy(update={"web": WebConfig(listen="0.0.0.0:8350")})
     with pytest.raises(ConfigError, match=r"without web\.token_file"):
         make_server(open_web)
-    local = site.model_copy(update={"web": WebConfig(listen="127.0.0.1:8399")})
-    assert make_server(local).url == "http://127.0.0.1:8399/"
+    port = _free_port()
+    local = site.model_copy(update={"web": WebConfig(listen=f"127.0.0.1:{port}")})
+    web = make_server(local)
+    assert web.url == f"http://127.0.0.1:{port}/"
+    web.sock.close()
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def test_a_port_another_program_holds_is_refused_before_serving(site: Config) -> None:
+    """Session 58's review: the daemon logged "serving", then uvicorn's thread failed on the
+    busy port and the daemon ran on without pages, API or metrics."""
+    from mapserver.config import WebConfig
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        busy = site.model_copy(update={"web": WebConfig(listen=f"127.0.0.1:{port}")})
+        with pytest.raises(ConfigError, match=f"web.listen 127.0.0.1:{port}: Address already"):
+            make_server(busy)
 
 
 def metric_families(c: TestClient) -> dict[str, Metric]:
@@ -415,7 +439,10 @@ def test_a_failed_bundle_shows_the_daemons_reason_not_one_it_brought(tmp_path: P
 def test_the_server_refreshes_the_index_its_pages_read(site: Config) -> None:
     # make_server's index is empty (falsy) until its first refresh: the app must not build an
     # index of its own, that no thread refreshes and /healthz reads without refreshing.
-    web = make_server(site)
+    assert site.web is not None
+    listen = site.web.model_copy(update={"listen": f"127.0.0.1:{_free_port()}"})
+    web = make_server(site.model_copy(update={"web": listen}))
+    web.sock.close()
     web.index.refresh()  # as its background thread does, every every_s seconds
     app = web.server.config.app
     assert app.state.index is web.index

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapserver.config import WebConfig
 from mapserver.errors import ConfigError
 
 COOKIE = "mapserver_session"
@@ -53,6 +54,24 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def host_port(listen: str) -> tuple[str, int]:
+    """The host and the port of ``web.listen`` (``HOST:PORT``, an IPv6 host in brackets)."""
+    host, _, port = listen.rpartition(":")
+    number = int(port)
+    if not 0 < number < 65536:
+        raise ConfigError(f"web.listen: port {number} is not between 1 and 65535")
+    return host.strip("[]"), number
+
+
+def check_settings(web: WebConfig) -> None:
+    """The web settings as serving them needs them, else a :class:`ConfigError`: the token
+    file readable and long enough, a non-loopback address only with a token
+    (:func:`check_listen`). What ``mapserver check-config`` asks too, so that a configuration
+    it passes does not stop ``run``."""
+    host, _ = host_port(web.listen)
+    check_listen(host, read_token(web.token_file))
 
 
 def check_listen(host: str, token: str | None) -> None:

@@ -4,6 +4,7 @@ daemon (``mapserver run`` with ``web:`` set)."""
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 from dataclasses import dataclass
 
@@ -18,14 +19,6 @@ from mapserver.web.index import BundleIndex
 log = logging.getLogger(__name__)
 
 
-def host_port(listen: str) -> tuple[str, int]:
-    host, _, port = listen.rpartition(":")
-    number = int(port)
-    if not 0 < number < 65536:
-        raise ConfigError(f"web.listen: port {number} is not between 1 and 65535")
-    return host.strip("[]"), number
-
-
 @dataclass
 class WebServer:
     """A uvicorn server for ``config``, not yet started."""
@@ -34,14 +27,19 @@ class WebServer:
     server: uvicorn.Server
     index: BundleIndex
     url: str
+    sock: socket.socket
+    """Bound when the server was made: a port another program holds stops the command there,
+    before anything says it serves (session 58's review: the daemon logged "serving", uvicorn's
+    thread then failed on the busy port, and the daemon ran on without pages or metrics)."""
 
     def run(self) -> None:
         """Serve until :meth:`stop` (or SIGTERM/SIGINT when run in the main thread)."""
         self.index.start()
         try:
-            self.server.run()
+            self.server.run(sockets=[self.sock])
         finally:
             self.index.stop()
+            self.sock.close()
 
     def start_thread(self) -> threading.Thread:
         thread = threading.Thread(target=self.run, name="mapserver-web", daemon=True)
@@ -56,9 +54,8 @@ def make_server(config: Config) -> WebServer:
     """Check the web settings (a non-loopback address needs a token) and build the server."""
     web = config.web or WebConfig()
     config = config.model_copy(update={"web": web})
-    host, port = host_port(web.listen)
-    token = security.read_token(web.token_file)
-    security.check_listen(host, token)
+    host, port = security.host_port(web.listen)
+    security.check_settings(web)
     index = BundleIndex(config.outbox, config.failed)
     app = create_app(config, index=index)
     settings = uvicorn.Config(
@@ -74,4 +71,24 @@ def make_server(config: Config) -> WebServer:
     # thread the daemon keeps them, and stops the server itself.
     server = uvicorn.Server(settings)
     shown = f"[{host}]" if ":" in host else host
-    return WebServer(config, server, index, f"http://{shown}:{port}/")
+    return WebServer(config, server, index, f"http://{shown}:{port}/", _bound(host, port))
+
+
+def _bound(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host``:``port`` (as uvicorn binds one: SO_REUSEADDR, so a port
+    in TIME_WAIT after a restart is free), or a :class:`ConfigError` saying why not."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror as error:
+        raise ConfigError(f"web.listen: cannot resolve {host}: {error.strerror}") from None
+    sock = socket.socket(family, kind, proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(address)
+    except OSError as error:
+        sock.close()
+        raise ConfigError(
+            f"web.listen {host}:{port}: {error.strerror} (another program serves there; "
+            "choose another port in web.listen, or stop that program)"
+        ) from None
+    return sock
