@@ -56,8 +56,17 @@ def _setup_logging(level: str) -> None:
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
+    from mapserver.outbox import check_one_filesystem
+
     config = load_config(args.config)
     check_paths(config)
+    # What run refuses too (session 58's review: these passed here, and the unit that
+    # systemctl started then stopped at once, again and again).
+    check_one_filesystem(config.inbox, config.outbox, config.archive, config.failed)
+    if config.web is not None:
+        from mapserver.web.security import check_settings
+
+        check_settings(config.web)
     sys.stdout.write(dump_config(config))
     return 0
 

@@ -245,6 +245,31 @@ class Allocation:
     duplicate_of: str | None = None
 
 
+def check_one_filesystem(inbox: Path, outbox: Path, archive: Path, failed: Path) -> None:
+    """A :class:`ConfigError` when the four folders (for one not made yet, the nearest folder
+    above it that is) lie on different filesystems: bundles move between them by rename, which
+    fails across filesystems. Made nothing, and read nothing but their devices: what
+    ``check-config`` asks before ``run`` makes the folders and tries a rename between them
+    (:meth:`Store.prepare`; under systemd, different ``ReadWritePaths=`` bind mounts of one
+    filesystem fail the same way, and only that rename shows it)."""
+
+    def device(path: Path) -> tuple[int, Path]:
+        there = Path(path)
+        while not there.exists() and there != there.parent:
+            there = there.parent
+        return os.stat(there).st_dev, there
+
+    first, first_at = device(inbox)
+    for name, path in (("outbox", outbox), ("archive", archive), ("failed", failed)):
+        dev, at = device(path)
+        if dev != first:
+            raise ConfigError(
+                f"{name} {path} is on another filesystem than inbox {inbox} ({at} and "
+                f"{first_at}): inbox, outbox, archive and failed must be on one filesystem "
+                "(bundles move between them by rename)"
+            )
+
+
 def _no_checkpoint(point: str) -> None:
     """The default checkpoint: nothing (see ``MAPSERVER_TEST_CRASH_AT`` in :mod:`service`)."""
 

@@ -129,8 +129,12 @@ class Report:
             out += _health_lines(self.degraded)
         else:
             out.append(f"daemon:    not running (no mapserver run holds {config.inbox})")
+        # Without a daemon nothing tells an upload still going on from a complete one: the
+        # entries are counted as waiting in the inbox (session 58's review: after a kill -9,
+        # eight complete uploads read "8 uploading").
+        waiting = "uploading" if self.running else "in the inbox (judged when it starts)"
         queue = (
-            f"queue:     {self.uploading} uploading, {self.queued} queued, "
+            f"queue:     {self.uploading} {waiting}, {self.queued} queued, "
             f"{self.processing} processing"
         )
         if self.running and self.daemon is not None:

@@ -306,7 +306,7 @@ def test_status_of_a_running_daemon_and_of_a_stopped_one(tmp_path: Path) -> None
     assert stopped.returncode == 3, stopped.stderr
     lines = stopped.stdout.splitlines()
     assert lines[0] == f"daemon:    not running (no mapserver run holds {dirs['inbox']})"
-    assert lines[1] == "queue:     1 uploading, 0 queued, 0 processing"
+    assert lines[1] == ("queue:     1 in the inbox (judged when it starts), 0 queued, 0 processing")
     assert lines[2] == "last 24 h: 1 results, 1 failed"
 
 
@@ -322,8 +322,10 @@ def test_status_without_a_daemon_exits_3_and_counts_from_the_folders(
     lines = capsys.readouterr().out.splitlines()
     assert lines[:3] == [
         f"daemon:    not running (no mapserver run holds {tmp_path / 'inbox'})",
-        "queue:     1 uploading, 1 queued, 0 processing (taken before the daemon stopped: "
-        "processed at its next start)",
+        # Without a daemon nothing tells an upload going on from a complete one (session
+        # 58's review: complete uploads read "uploading" after a kill -9).
+        "queue:     1 in the inbox (judged when it starts), 1 queued, 0 processing (taken "
+        "before the daemon stopped: processed at its next start)",
         "last 24 h: 0 results, 0 failed",
     ]
     assert lines[-1].startswith(f"  maps     {tmp_path / 'maps'}  ") and "GiB free" in lines[-1]
@@ -395,3 +397,33 @@ def test_process_calls_a_file_a_complete_bundle_lacks_missing_not_late(
     assert main(["process", "--outbox", str(tmp_path / "out"), str(bundle)]) == 1
     err = capsys.readouterr().err
     assert err == f"mapserver: error: {bundle / 'bundle.yaml'}: nav2_map 'gone.yaml' is missing\n"
+
+
+def test_check_config_refuses_what_run_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Session 58's review: check-config passed a failed/ on another filesystem, a missing
+    web token file and a public address without a token, and run then stopped at once on
+    each (the README has check-config run before systemctl start)."""
+    config_file = tmp_path / "mapserver.yaml"
+    cases = [
+        ({"web": {"token_file": "nowhere/token"}}, "cannot read the web token"),
+        ({"web": {"listen": "0.0.0.0:8397"}}, "refusing to serve on 0.0.0.0 without"),
+    ]
+    shm = Path("/dev/shm")
+    if shm.is_dir() and os.stat(shm).st_dev != os.stat(tmp_path).st_dev:
+        cases.append(
+            (
+                {"failed": str(shm / f"mapserver-test-{os.getpid()}" / "failed")},
+                "on another filesystem than inbox",
+            )
+        )
+    for doc, problem in cases:
+        config_file.write_text(yaml.safe_dump(doc))
+        assert main(["check-config", "--config", str(config_file)]) == 1, doc
+        err = capsys.readouterr().err
+        assert problem in err and err.count("\n") == 1, err
+    assert not any(p.name.startswith("mapserver-test-") for p in shm.glob("*")), "made a folder"
+    config_file.write_text(yaml.safe_dump({"web": {"listen": "127.0.0.1:8397"}}))
+    assert main(["check-config", "--config", str(config_file)]) == 0
+    capsys.readouterr()
