@@ -295,7 +295,10 @@ def test_metrics_count_bundles_changes_and_versions(site: Config) -> None:
     scores = families["mapserver_results_by_alignment_score"].samples
     assert [s.value for s in scores if s.labels["le"] == "+Inf"] == [len(DEPOT)]
     assert families["mapserver_daemon_up"].samples[0].value == 0
-    assert client(site).get("/healthz").json()["results_indexed"] == len(DEPOT)
+    health = client(site).get("/healthz").json()
+    assert health["results_indexed"] == len(DEPOT)
+    # No daemon serves the site: the status says so first (session 58's review: "ok").
+    assert (health["status"], health["daemon_running"]) == ("daemon not running", False)
 
 
 def test_what_the_folders_hold_is_a_gauge_and_only_the_daemons_counts_are_counters(
@@ -399,6 +402,7 @@ def test_a_degraded_daemon_shows_on_the_dashboard_and_in_the_metrics(tmp_path: P
         families = {f.name: f for f in text_string_to_metric_families(c.get("/metrics").text)}
         assert families["mapserver_degraded"].samples[0].value == 1
         assert c.get("/healthz").json()["degraded"] is True
+        assert c.get("/healthz").json()["status"] == "degraded"
 
 
 def test_a_failed_bundle_shows_the_daemons_reason_not_one_it_brought(tmp_path: Path) -> None:

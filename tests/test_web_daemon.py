@@ -31,6 +31,7 @@ def test_the_daemon_serves_its_pages_when_web_is_set(tmp_path: Path) -> None:
         daemon.wait_ready()
         health = json.loads(get(base + "/healthz"))
         assert health["daemon_running"] is True and health["results_indexed"] == 0
+        assert health["status"] == "ok"
         upload(source, layout(tmp_path)["inbox"])
         wait_until(
             lambda: (tmp_path / "outbox/run-1/result.yaml").exists(), timeout=30, what="run-1"

@@ -386,8 +386,10 @@ def create_app(config: Config, *, index: BundleIndex | None = None) -> FastAPI:
     @app.get("/healthz", response_model=Health, tags=["health"])
     def healthz() -> Health:
         r = daemon_report()
+        # What a monitor reads first (session 58's review: "ok" with the daemon down).
+        status = "daemon not running" if not r.running else "degraded" if r.degraded else "ok"
         return Health(
-            status="ok",
+            status=status,
             version=__version__,
             daemon_running=r.running,
             degraded=r.degraded is not None,
