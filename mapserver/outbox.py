@@ -487,7 +487,7 @@ class Store:
 
     def reject(self, name: str, bundle_id: str, stage: str, reason: str) -> Path:
         """Move inbox entry ``name`` to ``failed/<bundle_id>/`` with error.yaml (via .taken)."""
-        reason = _within(reason, self.inbox / name)
+        reason = within_bundle(reason, self.inbox / name)
         staged = self._stage_error(bundle_id, stage, reason)
         try:
             self._take(name, bundle_id)
@@ -499,7 +499,7 @@ class Store:
     def fail(self, bundle_id: str, stage: str, reason: str) -> Path:
         """Move ``.taken/<bundle_id>`` to ``failed/<bundle_id>/`` with error.yaml (also when a
         fault stopped an earlier call after the move: then only error.yaml is added)."""
-        reason = _within(reason, self.taken / bundle_id)
+        reason = within_bundle(reason, self.taken / bundle_id)
         staged = self._stage_error(bundle_id, stage, reason)
         target = self.failed_dir / bundle_id
         if not os.path.lexists(self.taken / bundle_id) and os.path.lexists(target):
@@ -582,7 +582,7 @@ def daemon_error(failed_bundle: Path) -> Path | None:
     return failed_bundle / _error_name(last) if last else None
 
 
-def _within(reason: str, bundle: Path) -> str:
+def within_bundle(reason: str, bundle: Path) -> str:
     """``reason`` with the bundle's path left out of the file names it gives: error.yaml sits in
     the bundle's folder, and the folder has moved since."""
     for form in dict.fromkeys((str(bundle), str(bundle.resolve()))):

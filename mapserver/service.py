@@ -50,7 +50,7 @@ from mapserver.inbox import (
 )
 from mapserver.lock import daemon_lock, store_lock
 from mapserver.notify import notify, watchdog_period
-from mapserver.outbox import RESULT, Store, utc_now
+from mapserver.outbox import RESULT, Store, utc_now, within_bundle
 from mapserver.retention import Retention
 from mapserver.status import STATUS_NAME, write_status
 from mapserver.trust import trust_notice
@@ -527,7 +527,10 @@ class Service:
         path = self._store.reject(name, bundle_id, stage, reason)
         self._retake.pop(name, None)
         self._counts.failed += 1
-        log.warning("%s: done: failed at stage %s: %s -> %s", bundle_id, stage, reason, path)
+        # The files named as error.yaml names them, in the folder the line ends with (session
+        # 58's review: the line named them in inbox/.taken/, where they no longer are).
+        shown = within_bundle(reason, self._config.inbox / name)
+        log.warning("%s: done: failed at stage %s: %s -> %s", bundle_id, stage, shown, path)
 
     # -- workers ----------------------------------------------------------------------------
 
@@ -791,7 +794,8 @@ class Service:
             )
             return
         self._counts.failed += 1
-        log.warning("%s: done: failed at stage %s: %s -> %s", job.bundle_id, stage, reason, path)
+        shown = within_bundle(reason, self._store.taken / job.bundle_id)
+        log.warning("%s: done: failed at stage %s: %s -> %s", job.bundle_id, stage, shown, path)
 
     # -- faults of the server's folders (mapserver.faults) ----------------------------------
 

@@ -380,12 +380,16 @@ def test_every_malformed_bundle_ends_in_failed_and_the_daemon_keeps_serving(
         wait_until(finished(tmp_path, ids), timeout=60, what="every bundle decided")
         assert daemon.process.poll() is None
         assert daemon.stop() == 0, daemon.log()
+        log = daemon.log()
 
     for bundle_id, _, stage, word in BAD:
         error = yaml.safe_load((dirs["failed"] / bundle_id / "error.yaml").read_text())
         assert (error["stage"], error["bundle"]) == (stage, bundle_id), error
         assert word in error["reason"], error
         assert str(tmp_path) not in error["reason"], error  # names files within the bundle
+        # The log line names them as error.yaml does (session 58's review: in .taken/).
+        line = next(x for x in log.splitlines() if f": {bundle_id}: done: failed at" in x)
+        assert error["reason"] in line and ".taken" not in line, line
         kept = {p.name for p in (dirs["failed"] / bundle_id).iterdir()} - {"error.yaml"}
         assert kept == {p.name for p in sources[bundle_id].iterdir()}
     for bundle_id, word in [
