@@ -315,16 +315,6 @@ def _run_length_m(run: FloatArray) -> float:
     return float(np.hypot(*np.diff(run, axis=0).T).sum()) if len(run) > 1 else 0.0
 
 
-def _halves(run: FloatArray) -> tuple[FloatArray, FloatArray] | None:
-    """The two halves of ``run`` (M, 2) by path length, sharing their middle pose; None when
-    it is too short to cut (fewer than three poses)."""
-    if len(run) < 3:
-        return None
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(run, axis=0).T))])
-    k = int(np.clip(np.searchsorted(s, s[-1] / 2), 1, len(run) - 2))
-    return run[: k + 1], run[k:]
-
-
 def _split_left_out(
     local: OccupancyMap,
     pieces: list[Piece],
@@ -369,22 +359,29 @@ def _halves_joined(
     end; two halves joined from either side must meet at the middle, else only the better
     scoring one is kept. A half left out keeps the piece's transform. None when no half joins
     (and for a piece with no cells)."""
-    halves = _halves(piece.run) if _run_length_m(piece.run) >= _SPLIT_MIN_RUN_M else None
-    if halves is None or not piece.mask.any():  # a run another one's blocks took: no cells
+    length = _run_length_m(piece.run)
+    if length < _SPLIT_MIN_RUN_M or not piece.mask.any():  # no cells: another run took them
         return None
+    # Cut at the middle of its path, as the route is cut into pieces (sharing the middle pose).
+    halves = route_pieces(piece.run, piece_m=length / 2)
+    if len(halves) != 2:
+        return None
+    # Each half's cells, its wall cells and its area, worked out on the piece's box only.
     x, y, w, h = cv2.boundingRect(piece.mask.view(np.uint8))
-    sub_labels = label_cells(_sub_map(local, piece.mask), list(halves))
-    masks = []
+    sub = _sub_map(local, piece.mask)
+    sub_labels = label_cells(sub, halves)  # the piece's own cells only: -1 elsewhere
+    sub_walls = sub.state == OCCUPIED
+    masks, walls, areas = [], [], []
     for k in range(2):
+        mine = sub_labels == k
         m = np.zeros_like(piece.mask)
-        m[y : y + h, x : x + w] = sub_labels == k
-        masks.append(m & piece.mask)
-    cell_m2 = local.resolution**2
+        m[y : y + h, x : x + w] = mine
+        masks.append(m)
+        walls.append(int(np.count_nonzero(mine & sub_walls)))
+        areas.append(float(np.count_nonzero(mine)) * local.resolution**2)
 
     def half(k: int, start: Transform2D, pivot_at: int) -> Piece:
-        walls = int(np.count_nonzero(masks[k] & (local.state == OCCUPIED)))
-        area = float(np.count_nonzero(masks[k])) * cell_m2
-        return fit_cells(piece.index, masks[k], halves[k], area, walls, [start], pivot_at)
+        return fit_cells(piece.index, masks[k], halves[k], areas[k], walls[k], [start], pivot_at)
 
     def joins(p: Piece, end: Piece, at: FloatArray) -> bool:
         return _joins(p, end, at, end.nav2_from_slam.theta, agree_m, _MAX_TURN_RAD)
@@ -417,16 +414,14 @@ def _halves_joined(
     out = []
     for k, kept in enumerate(got):
         if kept is None:  # the half nothing joined: left out, as its piece was
-            walls = int(np.count_nonzero(masks[k] & (local.state == OCCUPIED)))
-            area = float(np.count_nonzero(masks[k])) * cell_m2
             run = halves[k]
             kept = dataclasses.replace(
                 piece,
                 mask=masks[k],
-                area_m2=area,
+                area_m2=areas[k],
                 junction=(float(run[0, 0]), float(run[0, 1])),
                 run=run,
-                aligned=piece.aligned and walls >= min_walls,
+                aligned=piece.aligned and walls[k] >= min_walls,
             )
         out.append(kept)
     return out
