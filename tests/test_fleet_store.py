@@ -1125,3 +1125,15 @@ def test_unknown_reaching_past_a_removed_block_stays_unknown(tmp_path: Path) -> 
     v2 = load_map(tmp_path / "maps" / "hall" / "v0002.yaml").state
     assert (v2[outline] == FREE).all()
     assert (v2[BLOCK_INSIDE] == UNKNOWN).all()
+
+
+@pytest.mark.parametrize("name", ["0042", "1.10", "null", "on", "2026-11-21"])
+def test_changes_yaml_names_a_map_whose_name_yaml_would_read_as_another_type(
+    tmp_path: Path, hall: Path, name: str
+) -> None:
+    """The bundle-id pattern allows names YAML reads as numbers, null, booleans or dates;
+    changes.yaml wrote them unquoted (session 59's review: '0042' came back as 34)."""
+    store = FleetStore(tmp_path / "maps", AUTO)
+    store.add_map(name, hall)
+    doc = yaml.safe_load((tmp_path / "maps" / name / "changes.yaml").read_text())
+    assert doc["map"] == name and doc["current_version"] == 1

@@ -1019,8 +1019,13 @@ class FleetStore:
         )
         for cid in [k for k, (st, upd, _) in docs.items() if st == "expired" and upd < cutoff]:
             del docs[cid]
-        # Block style, as a person reads it (map names are plain words: no quoting needed).
-        head = f"format: 1\nmap: {name}\ncurrent_version: {version}\n".encode()
+        # Block style, as a person reads it; the name through the dumper, which quotes a name
+        # YAML would read as something else (0042, 1.10, null, on, a date: session 59's review).
+        head = yaml.safe_dump(
+            {"format": 1, "map": name, "current_version": version},
+            sort_keys=False,
+            default_flow_style=False,
+        ).encode("utf-8")
         body = "".join(docs[cid][2] for cid in sorted(docs))
         publish.write_changes_text(
             folder, head + (b"changes:\n" + body.encode("utf-8") if body else b"changes: []\n")
