@@ -1137,3 +1137,87 @@ def test_changes_yaml_names_a_map_whose_name_yaml_would_read_as_another_type(
     store.add_map(name, hall)
     doc = yaml.safe_load((tmp_path / "maps" / name / "changes.yaml").read_text())
     assert doc["map"] == name and doc["current_version"] == 1
+
+
+def test_a_version_the_database_does_not_know_is_set_aside_and_its_number_never_reused(
+    tmp_path: Path, hall: Path
+) -> None:
+    """Restoring store.db from a backup made before version 2 (README, "Back up the map
+    store") left v0002 on disk; the next publication overwrote it with other contents, and a
+    robot still on the old v2 matched no version (session 59's store review)."""
+    store = new_store(tmp_path, hall, REVIEW)
+    folder = tmp_path / "maps" / "hall"
+    backup = tmp_path / "store-backup.db"
+    with sqlite3.connect(backup) as copy:
+        store._conn.backup(copy)
+    copy.close()
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = store.apply(wall_seen(robot, hours)).changes
+    assert store.approve(cid).version == 2
+    published = (folder / "v0002.pgm").read_bytes()
+    store.close()
+    for suffix in ("", "-wal", "-shm"):
+        (tmp_path / "maps" / f"store.db{suffix}").unlink(missing_ok=True)
+    (tmp_path / "maps" / "store.db").write_bytes(backup.read_bytes())
+
+    store = FleetStore(tmp_path / "maps", REVIEW)
+    store.sync()
+    assert [v.version for v in store.versions("hall")] == [1]
+    assert not (folder / "v0002.pgm").exists() and not (folder / "v0002.yaml").exists()
+    assert (folder / ".unpublished" / "v0002.pgm").read_bytes() == published
+    assert yaml.safe_load((folder / "current.yaml").read_text())["image"] == "v0001.pgm"
+    # The sightings again (the bundles applied after the backup, uploaded once more).
+    for hours in (24, 32, 40):
+        (cid,) = store.apply(wall_seen(robot, hours)).changes
+    assert store.approve(cid).version == 3
+    assert (folder / ".unpublished" / "v0002.pgm").read_bytes() == published
+    assert yaml.safe_load((folder / "current.yaml").read_text())["image"] == "v0003.pgm"
+
+
+def test_sync_removes_the_temporary_files_of_interrupted_writes_and_nothing_else(
+    tmp_path: Path, hall: Path
+) -> None:
+    """A kill between a temporary file's write and its rename left a full-size map image
+    behind for good (session 59's store review)."""
+    store = new_store(tmp_path, hall)
+    folder = tmp_path / "maps" / "hall"
+    left = [folder / ".v0002.pgm.092248c7.tmp", folder / ".current.yaml.0a1b2c3d.tmp"]
+    kept = [folder / ".notes.tmp", folder / "README.txt"]
+    for path in left + kept:
+        path.write_bytes(b"x" * 100)
+    store.sync()
+    assert [p.exists() for p in left] == [False, False]
+    assert [p.exists() for p in kept] == [True, True]
+    assert [v.version for v in store.versions("hall")] == [1]
+
+
+def test_a_retried_approve_mends_the_files_a_killed_one_left_stale(
+    tmp_path: Path, hall: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An approve killed between its commit and current.yaml's rename left current.yaml on
+    version 1 and the keepout mask marking the approved wall; the retried approve was refused
+    as published and nothing mended them until the daemon's next bundle for that map
+    (session 59's store review). An operator's action now mends them first."""
+    store = new_store(tmp_path, hall, REVIEW)
+    folder = tmp_path / "maps" / "hall"
+    robot = Robot()
+    for hours in (0, 8, 16):
+        (cid,) = store.apply(wall_seen(robot, hours)).changes
+    write_current = publish.write_current
+
+    def killed(*args: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C or a kill right after the commit
+
+    monkeypatch.setattr(publish, "write_current", killed)
+    with pytest.raises(KeyboardInterrupt):
+        store.approve(cid)
+    monkeypatch.setattr(publish, "write_current", write_current)
+    assert [v.version for v in store.versions("hall")] == [1, 2]
+    assert yaml.safe_load((folder / "current.yaml").read_text())["image"] == "v0001.pgm"
+    assert (load_map(folder / "keepout.yaml").state[WALL] == OCCUPIED).all()
+    with pytest.raises(StoreError, match="published"):
+        store.approve(cid)
+    assert yaml.safe_load((folder / "current.yaml").read_text())["image"] == "v0002.pgm"
+    assert (current(tmp_path)[WALL] == OCCUPIED).all()
+    assert (load_map(folder / "keepout.yaml").state == FREE).all()

@@ -306,6 +306,7 @@ class FleetStore:
         ``rejected`` (an operator undid them), so that the same sightings do not publish them
         again. Changes an earlier rollback undid that ``version`` holds are published again."""
         with self._writer():
+            self._repaired(name)
             return self._rollback(name, version, actor)
 
     def _rollback(self, name: str, version: int, actor: str) -> VersionInfo:
@@ -484,6 +485,7 @@ class FleetStore:
     def approve(self, change_id: int, *, actor: str = "operator") -> VersionInfo:
         """Publish a confirmed change (review mode): a new version with it."""
         with self._writer():
+            self._repaired(self.change(change_id).map)
             return self._approve(change_id, actor)
 
     def _approve(self, change_id: int, actor: str) -> VersionInfo:
@@ -517,6 +519,7 @@ class FleetStore:
         """Reject a pending or confirmed change: it is never published, and later sightings of
         the same thing are counted on it instead of starting a new change."""
         with self._writer():
+            self._repaired(self.change(change_id).map)
             return self._reject(change_id, actor)
 
     def _reject(self, change_id: int, actor: str) -> ChangeInfo:
@@ -706,6 +709,7 @@ class FleetStore:
             for (name,) in self._conn.execute("SELECT name FROM maps").fetchall():
                 map_id, lattice, yaw, _ = self._map(name)
                 with self._writer():
+                    self._tidy(map_id, name)
                     if self.settings.mode == "auto":
                         ids = self._confirmed_ids(map_id)
                         if ids:
@@ -716,6 +720,25 @@ class FleetStore:
             self.unwritten = error
             raise
         self.unwritten = None
+
+    def _tidy(self, map_id: int, name: str) -> None:
+        """The map's folder tidied (:func:`publish.set_aside`), each step logged."""
+        known = {
+            f
+            for row in self._conn.execute(
+                "SELECT yaml, image FROM versions WHERE map_id = ?", (map_id,)
+            )
+            for f in row
+        }
+        for line in publish.set_aside(self.root / name, known):
+            log.warning("map %s: %s", name, line)
+
+    def _repaired(self, name: str) -> None:
+        """Before an operator's action: current.yaml, the keepout mask and changes.yaml brought
+        in line with the database, should an earlier action have been killed between its commit
+        and its files (a retried approve is refused as published; nothing else would mend them
+        until the daemon's next bundle for that map)."""
+        self._write_derived(name)
 
     # -- publishing -------------------------------------------------------------------------
 
@@ -879,8 +902,10 @@ class FleetStore:
         expect: str | None = None,
         copy_of: int | None = None,
     ) -> int:
-        version = self._current_version(map_id) + 1
         folder = self.root / name
+        # Past every number on disk too: a file the database does not know (a restored backup)
+        # may have been published, and is never overwritten with other contents.
+        version = max(self._current_version(map_id), publish.highest_on_disk(folder)) + 1
         yaml_path, image = publish.write_version(folder, version, state, lattice, yaw)
         digest = sha256_file(image)
         now = now_utc()
