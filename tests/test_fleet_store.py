@@ -1148,8 +1148,9 @@ def test_a_version_the_database_does_not_know_is_set_aside_and_its_number_never_
     store = new_store(tmp_path, hall, REVIEW)
     folder = tmp_path / "maps" / "hall"
     backup = tmp_path / "store-backup.db"
-    with sqlite3.connect(backup) as copy:
-        store._conn.backup(copy)
+    live, copy = sqlite3.connect(tmp_path / "maps" / "store.db"), sqlite3.connect(backup)
+    live.backup(copy)  # SQLite's online backup, as the README's backup does
+    live.close()
     copy.close()
     robot = Robot()
     for hours in (0, 8, 16):

@@ -6,7 +6,6 @@ Everything here is derived from the database and can be written again from it.
 
 from __future__ import annotations
 
-import logging
 import re
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,6 @@ CHANGES = "changes.yaml"
 UNPUBLISHED = ".unpublished"
 """Where version files the database does not know are moved (:func:`set_aside`)."""
 
-log = logging.getLogger(__name__)
 _VERSION_FILE = re.compile(r"v(\d{4,})\.(?:yaml|pgm)")
 # fsio.replace_atomic's temporary files: ".<name>.<8 hex>.tmp".
 _TEMPORARY = re.compile(r"\..+\.[0-9a-f]{8}\.tmp")

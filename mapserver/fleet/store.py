@@ -485,11 +485,11 @@ class FleetStore:
     def approve(self, change_id: int, *, actor: str = "operator") -> VersionInfo:
         """Publish a confirmed change (review mode): a new version with it."""
         with self._writer():
-            self._repaired(self.change(change_id).map)
-            return self._approve(change_id, actor)
+            info = self.change(change_id)
+            self._repaired(info.map)
+            return self._approve(change_id, info, actor)
 
-    def _approve(self, change_id: int, actor: str) -> VersionInfo:
-        info = self.change(change_id)
+    def _approve(self, change_id: int, info: ChangeInfo, actor: str) -> VersionInfo:
         if info.state != "confirmed":
             raise StoreError(
                 f"change {_named(change_id, info.id)} is {info.state}, not confirmed: only a "
@@ -519,11 +519,11 @@ class FleetStore:
         """Reject a pending or confirmed change: it is never published, and later sightings of
         the same thing are counted on it instead of starting a new change."""
         with self._writer():
-            self._repaired(self.change(change_id).map)
-            return self._reject(change_id, actor)
+            info = self.change(change_id)
+            self._repaired(info.map)
+            return self._reject(change_id, info, actor)
 
-    def _reject(self, change_id: int, actor: str) -> ChangeInfo:
-        info = self.change(change_id)
+    def _reject(self, change_id: int, info: ChangeInfo, actor: str) -> ChangeInfo:
         if info.state not in ("pending", "confirmed"):
             raise StoreError(
                 f"change {_named(change_id, info.id)} is {info.state}: only a pending or "
